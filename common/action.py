@@ -1,0 +1,53 @@
+"""The action a policy chooses, and the pixel <-> robot-frame conversion (VPG's convention).
+
+Image frame: row r, column c of a heightmap. Robot frame: x = c*res + x_min, y = r*res + y_min,
+z = depth_hm[r, c] + z_min. Because columns map to x and rows to y with the same orientation, an angle
+in the image frame (from the column axis toward the row axis) equals the gripper's yaw in the robot frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import PRIMITIVES, WorkspaceConfig
+
+
+@dataclass(frozen=True)
+class Action:
+    """One chosen manipulation action: primitive type and pixel-wise pose (x, y, theta, Q)."""
+
+    primitive: str  # "push" | "pick" | "place"
+    row: int
+    col: int
+    angle_rad: float  # gripper yaw; push: direction of the push; pick/place: finger-closing axis
+    q_value: float
+    explored: bool = False
+
+    def __post_init__(self) -> None:
+        if self.primitive not in PRIMITIVES:
+            raise ValueError(f"Action.primitive = {self.primitive!r} is invalid: must be one of {PRIMITIVES}")
+        if not math.isfinite(self.angle_rad):
+            raise ValueError(f"Action.angle_rad = {self.angle_rad!r} is invalid: must be finite")
+
+
+def pixel_to_position(row: int, col: int, depth_hm: np.ndarray, ws: WorkspaceConfig) -> tuple[float, float, float]:
+    """Robot-frame (x, y, z) in metres of heightmap pixel (row, col), z read from the depth heightmap."""
+    h, w = depth_hm.shape
+    if not (0 <= row < h and 0 <= col < w):
+        raise ValueError(f"pixel ({row}, {col}) is outside the {h}x{w} heightmap")
+    x = col * ws.resolution_m + ws.x_min_m
+    y = row * ws.resolution_m + ws.y_min_m
+    z = float(depth_hm[row, col]) + ws.z_min_m
+    return x, y, z
+
+
+def position_to_pixel(x_m: float, y_m: float, ws: WorkspaceConfig) -> tuple[int, int]:
+    """Heightmap (row, col) of a robot-frame position; raises ValueError outside the workspace."""
+    col = int(round((x_m - ws.x_min_m) / ws.resolution_m))
+    row = int(round((y_m - ws.y_min_m) / ws.resolution_m))
+    if not (0 <= row < ws.height_px and 0 <= col < ws.width_px):
+        raise ValueError(f"position ({x_m:.4f}, {y_m:.4f}) m is outside the workspace")
+    return row, col

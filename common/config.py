@@ -1,0 +1,210 @@
+"""One typed, frozen config dataclass per component, and the root Config that groups them.
+
+Load with `load_config(path, overrides)`; a bad value raises ConfigError naming the field, the value and
+what is allowed. `write_toml(cfg, path)` saves the resolved config (every run does).
+Later components (sim, replay, learner, actor) add their own section here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from .configbase import apply_overrides, from_dict, read_toml, require
+
+PRIMITIVES = ("push", "pick", "place")
+
+
+@dataclass(frozen=True)
+class WorkspaceConfig:
+    """The square the heightmaps cover, in the robot base frame (metres), and their resolution."""
+
+    x_min_m: float = 0.276
+    x_max_m: float = 0.724
+    y_min_m: float = -0.224
+    y_max_m: float = 0.224
+    z_min_m: float = 0.0  # height of the workspace floor (table or bin bottom)
+    z_max_m: float = 0.4  # points above this are ignored (e.g. the arm itself)
+    resolution_m: float = 0.002  # metres per heightmap pixel
+
+    def __post_init__(self) -> None:
+        require(self.x_max_m > self.x_min_m, "workspace.x_max_m", self.x_max_m, "must be greater than x_min_m")
+        require(self.y_max_m > self.y_min_m, "workspace.y_max_m", self.y_max_m, "must be greater than y_min_m")
+        require(self.z_max_m > self.z_min_m, "workspace.z_max_m", self.z_max_m, "must be greater than z_min_m")
+        require(0 < self.resolution_m <= 0.05, "workspace.resolution_m", self.resolution_m,
+                "must be in (0, 0.05] metres per pixel (the paper uses 0.002)")
+        for name, extent in (("x", self.x_max_m - self.x_min_m), ("y", self.y_max_m - self.y_min_m)):
+            px = extent / self.resolution_m
+            require(abs(px - round(px)) < 1e-6 and round(px) % 4 == 0, f"workspace.{name}_max_m", extent,
+                    f"the {name} extent / resolution_m must be a whole multiple of 4 pixels "
+                    f"(RoManNet downsamples twice by 2); got {px:.3f} px")
+
+    @property
+    def height_px(self) -> int:
+        """Heightmap rows (along y)."""
+        return round((self.y_max_m - self.y_min_m) / self.resolution_m)
+
+    @property
+    def width_px(self) -> int:
+        """Heightmap columns (along x)."""
+        return round((self.x_max_m - self.x_min_m) / self.resolution_m)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Pinhole intrinsics of the RGB-D camera (defaults close to VPG's simulated camera)."""
+
+    width_px: int = 640
+    height_px: int = 480
+    fx_px: float = 618.62
+    fy_px: float = 618.62
+    cx_px: float = 320.0
+    cy_px: float = 240.0
+    near_m: float = 0.01
+    far_m: float = 10.0
+
+    def __post_init__(self) -> None:
+        require(self.width_px > 0, "camera.width_px", self.width_px, "must be a positive number of pixels")
+        require(self.height_px > 0, "camera.height_px", self.height_px, "must be a positive number of pixels")
+        require(self.fx_px > 0 and self.fy_px > 0, "camera.fx_px", (self.fx_px, self.fy_px),
+                "focal lengths must be positive (pixels)")
+        require(0 < self.near_m < self.far_m, "camera.near_m", self.near_m, "must satisfy 0 < near_m < far_m")
+
+    @property
+    def intrinsics(self) -> tuple[tuple[float, float, float], ...]:
+        return ((self.fx_px, 0.0, self.cx_px), (0.0, self.fy_px, self.cy_px), (0.0, 0.0, 1.0))
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """What the agent is asked to do; decides the allowed primitives and how progress is measured."""
+
+    kind: Literal["clutter", "arrangement", "stacking"] = "clutter"
+    use_push: bool = True  # tasks without push run PickNet only while not holding
+    goal_stack_height: int = 4  # stacking only: number of cubes in the goal stack
+    cube_size_m: float = 0.05  # stacking only: edge of the cubes, for stack-height measurement
+
+    def __post_init__(self) -> None:
+        require(2 <= self.goal_stack_height <= 5, "task.goal_stack_height", self.goal_stack_height,
+                "must be 2..5 (the paper's stacking goals)")
+        require(0.01 <= self.cube_size_m <= 0.2, "task.cube_size_m", self.cube_size_m, "must be 0.01..0.2 m")
+
+    @property
+    def primitives(self) -> tuple[str, ...]:
+        """Primitives the policy may use in this task."""
+        if self.kind == "stacking":
+            return ("push", "pick", "place") if self.use_push else ("pick", "place")
+        return ("push", "pick") if self.use_push else ("pick",)
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """RoManNet architecture (three GR-ConvNet variants) and the inference numerics of the actor."""
+
+    channels: int = 32  # GR-ConvNet width after the first 9x9 conv (32 gives ~1.9 M parameters per net)
+    residual_blocks: int = 5
+    dropout: float = 0.0
+    # Inference numerics: "auto" picks bf16 where the CPU supports it natively, else fp32.
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
+    channels_last: bool = True
+    num_threads: int = 0  # 0 = torch's default (one per core)
+
+    def __post_init__(self) -> None:
+        require(4 <= self.channels <= 256, "model.channels", self.channels, "must be 4..256")
+        require(0 <= self.residual_blocks <= 20, "model.residual_blocks", self.residual_blocks, "must be 0..20")
+        require(0.0 <= self.dropout < 1.0, "model.dropout", self.dropout, "must be in [0, 1)")
+        require(self.num_threads >= 0, "model.num_threads", self.num_threads, "must be >= 0 (0 = torch default)")
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Task Progress based Gaussian reward: R_tpg = max(R_tp, R_tp * G), R_tp = W(phi) X P."""
+
+    push_weight: float = 0.2
+    pick_weight: float = 1.0
+    place_weight: float = 1.0
+    use_progress: bool = True  # False: R = W X (the ablation without task progress)
+    use_gaussian: bool = True  # False: R_tp only (the R_tp vs R_tpg ablation)
+    sigma_y_px: float = 2.0  # across the gripper axis
+    anisotropy: float = 2.0  # sigma_x / sigma_y, x along the gripper's x axis (the paper's ratio)
+    kernel_normalization: Literal["peak", "paper"] = "peak"
+    kernel_radius_sigmas: float = 3.0  # support of the kernel, in sigma_x
+    occupied_height_m: float = 0.01  # clutter progress: a pixel is occupied above this height
+    progress_tolerance: float = 0.02  # a progress drop larger than this is a reversal (reward 0)
+
+    def __post_init__(self) -> None:
+        for name in ("push_weight", "pick_weight", "place_weight"):
+            value = getattr(self, name)
+            require(0.0 <= value <= 10.0, f"reward.{name}", value, "must be in [0, 10]")
+        require(0.1 <= self.sigma_y_px <= 50.0, "reward.sigma_y_px", self.sigma_y_px, "must be 0.1..50 pixels")
+        require(1.0 <= self.anisotropy <= 10.0, "reward.anisotropy", self.anisotropy,
+                "must be 1..10 (the paper uses sigma_x / sigma_y = 2)")
+        require(1.0 <= self.kernel_radius_sigmas <= 6.0, "reward.kernel_radius_sigmas",
+                self.kernel_radius_sigmas, "must be 1..6")
+        require(0.0 < self.occupied_height_m < 0.2, "reward.occupied_height_m", self.occupied_height_m,
+                "must be in (0, 0.2) m")
+        require(0.0 <= self.progress_tolerance < 0.5, "reward.progress_tolerance", self.progress_tolerance,
+                "must be in [0, 0.5)")
+
+    def weight(self, primitive: str) -> float:
+        return {"push": self.push_weight, "pick": self.pick_weight, "place": self.place_weight}[primitive]
+
+
+@dataclass(frozen=True)
+class ExplorationConfig:
+    """Loss Adjusted Exploration (the paper's) or VPG's epsilon-greedy schedule (for ablations)."""
+
+    policy: Literal["lae", "epsilon_greedy"] = "lae"
+    alpha: float = 0.5
+    sigma: float = 0.33  # inverse sensitivity (the authors' code)
+    beta: float = 0.25
+    initial_rate: float = 0.5
+    top_k: int = 10  # action candidates: top-k local maxima across the allowed nets' Q maps
+    candidate_min_distance_px: int = 5  # local maxima closer than this are one candidate
+    random_angle_prob: float = 0.5  # when exploring, draw the angle uniformly with this probability
+    epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
+    epsilon_decay: float = 0.9998
+    epsilon_min: float = 0.1
+
+    def __post_init__(self) -> None:
+        require(self.alpha > 0 and math.isfinite(self.alpha), "exploration.alpha", self.alpha, "must be > 0")
+        require(self.sigma > 0, "exploration.sigma", self.sigma, "must be > 0 (inverse sensitivity)")
+        require(0.0 <= self.beta < 1.0, "exploration.beta", self.beta, "must be in [0, 1)")
+        require(0.0 <= self.initial_rate <= 1.0, "exploration.initial_rate", self.initial_rate, "must be in [0, 1]")
+        require(1 <= self.top_k <= 1000, "exploration.top_k", self.top_k, "must be 1..1000")
+        require(1 <= self.candidate_min_distance_px <= 100, "exploration.candidate_min_distance_px",
+                self.candidate_min_distance_px, "must be 1..100")
+        require(0.0 <= self.random_angle_prob <= 1.0, "exploration.random_angle_prob", self.random_angle_prob,
+                "must be in [0, 1]")
+        require(0.0 <= self.epsilon_min <= self.epsilon_start <= 1.0, "exploration.epsilon_start",
+                self.epsilon_start, "must satisfy 0 <= epsilon_min <= epsilon_start <= 1")
+        require(0.0 < self.epsilon_decay <= 1.0, "exploration.epsilon_decay", self.epsilon_decay,
+                "must be in (0, 1]")
+
+
+@dataclass(frozen=True)
+class Config:
+    """The resolved configuration of a run: every component's section."""
+
+    run_id: str = "default"
+    seed: int = 0
+    workspace: WorkspaceConfig = field(default_factory=WorkspaceConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+
+    def __post_init__(self) -> None:
+        require(bool(self.run_id) and all(c.isalnum() or c in "-_" for c in self.run_id), "run_id",
+                self.run_id, "must be non-empty and use only letters, digits, '-' and '_' (it is a Zenoh key chunk)")
+        require(0 <= self.seed < 2**63, "seed", self.seed, "must be a non-negative integer")
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """Defaults, then the TOML file (if given), then `section.field=value` overrides, validated."""
+    data: dict[str, Any] = read_toml(path) if path is not None else {}
+    data = apply_overrides(data, list(overrides))
+    return from_dict(Config, data)

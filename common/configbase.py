@@ -1,0 +1,172 @@
+"""Generic machinery for typed, frozen config dataclasses: TOML in, overrides, validation, TOML out.
+
+Each component declares one frozen dataclass with a `validate()` method; this module turns dicts (from
+TOML files and `section.field=value` command-line overrides) into those dataclasses, rejecting unknown
+keys and wrong types with a ConfigError that names the field, the value and what is allowed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import types
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+import tomli_w
+
+from .errors import ConfigError
+
+T = TypeVar("T")
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, tp: Any, field: str) -> Any:
+    """Convert a TOML/override value to the declared field type, or raise ConfigError."""
+    origin = typing.get_origin(tp)
+    if origin is typing.Literal:
+        allowed = typing.get_args(tp)
+        if value not in allowed:
+            raise ConfigError(field, value, f"must be one of {', '.join(repr(a) for a in allowed)}")
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(value, args[0], field)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(field, value, f"must be a list of {_type_name(typing.get_args(tp)[0])}")
+        args = typing.get_args(tp)
+        item_tp = args[0]
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, item_tp, f"{field}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise ConfigError(field, value, f"must be a list of exactly {len(args)} values")
+        return tuple(_coerce(v, a, f"{field}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True)))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(field, value, "must be true or false")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(field, value, "must be an integer")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(field, value, "must be a number")
+        if not math.isfinite(value):
+            raise ConfigError(field, value, "must be a finite number")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(field, value, "must be a string")
+        return value
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(field, value, f"must be a table of {tp.__name__} fields")
+        return from_dict(tp, value, prefix=field)
+    raise TypeError(f"unsupported config type {tp!r} for field {field}")
+
+
+def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
+    """Build config dataclass `cls` from a dict; missing keys take defaults, unknown keys are errors."""
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        name = f"{prefix}.{key}" if prefix else key
+        if key not in fields:
+            raise ConfigError(name, value, f"unknown field; {cls.__name__} has: {', '.join(sorted(fields))}")
+        kwargs[key] = _coerce(value, hints[key], name)
+    try:
+        obj = cls(**kwargs)
+    except ConfigError as err:
+        if prefix and not err.field.startswith(prefix):
+            raise ConfigError(f"{prefix}.{err.field}", err.value, err.allowed) from None
+        raise
+    return obj
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain dict of a config dataclass (tuples become lists, None values are dropped for TOML)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if value is None:
+            continue
+        if dataclasses.is_dataclass(value):
+            value = to_dict(value)
+        elif isinstance(value, tuple):
+            value = list(value)
+        out[f.name] = value
+    return out
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """Parse `section.field=value`; the value is read as TOML (numbers, booleans, lists), else a string."""
+    if "=" not in text:
+        raise ConfigError(text, text, "an override must look like section.field=value, e.g. reward.push_weight=0.5")
+    key, raw = text.split("=", 1)
+    key = key.strip()
+    raw = raw.strip()
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    return key.split("."), value
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Return a copy of `data` with each `a.b.c=value` override set."""
+    merged = _deep_copy(data)
+    for text in overrides:
+        path, value = parse_override(text)
+        node = merged
+        for part in path[:-1]:
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise ConfigError(".".join(path), value, f"'{part}' is a value, not a section")
+            node = child
+        node[path[-1]] = value
+    return merged
+
+
+def _deep_copy(data: dict[str, Any]) -> dict[str, Any]:
+    return {k: _deep_copy(v) if isinstance(v, dict) else v for k, v in data.items()}
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError("config file", str(path), "the file does not exist") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError("config file", str(path), f"not valid TOML ({err})") from None
+
+
+def dumps_toml(cfg: Any) -> str:
+    return tomli_w.dumps(to_dict(cfg))
+
+
+def write_toml(cfg: Any, path: str | Path) -> Path:
+    """Write the resolved config; written to a temporary file and renamed so a crash leaves no half file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(dumps_toml(cfg))
+    tmp.replace(path)
+    return path
+
+
+def require(cond: bool, field: str, value: object, allowed: str) -> None:
+    """Validation helper used in every config's __post_init__."""
+    if not cond:
+        raise ConfigError(field, value, allowed)
