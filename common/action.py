@@ -46,8 +46,10 @@ def pixel_to_position(row: int, col: int, depth_hm: np.ndarray, ws: WorkspaceCon
 
 def position_to_pixel(x_m: float, y_m: float, ws: WorkspaceConfig) -> tuple[int, int]:
     """Heightmap (row, col) of a robot-frame position; raises ValueError outside the workspace."""
-    col = int(round((x_m - ws.x_min_m) / ws.resolution_m))
-    row = int(round((y_m - ws.y_min_m) / ws.resolution_m))
+    # Floor, as the heightmap binning does: a pixel covers [x_min + col*res, x_min + (col+1)*res).
+    # The epsilon keeps pixel -> position -> pixel exact despite floating-point division.
+    col = math.floor((x_m - ws.x_min_m) / ws.resolution_m + 1e-9)
+    row = math.floor((y_m - ws.y_min_m) / ws.resolution_m + 1e-9)
     if not (0 <= row < ws.height_px and 0 <= col < ws.width_px):
         raise ValueError(f"position ({x_m:.4f}, {y_m:.4f}) m is outside the workspace")
     return row, col

@@ -130,7 +130,7 @@ class RewardConfig:
     sigma_y_px: float = 2.0  # across the gripper axis
     anisotropy: float = 2.0  # sigma_x / sigma_y, x along the gripper's x axis (the paper's ratio)
     kernel_normalization: Literal["peak", "paper"] = "peak"
-    kernel_radius_sigmas: float = 3.0  # support of the kernel, in sigma_x
+    kernel_radius_sigmas: float = 3.0  # support: the ellipse of this Mahalanobis radius (r sigma_x by r sigma_y)
     occupied_height_m: float = 0.01  # clutter progress: a pixel is occupied above this height
     progress_tolerance: float = 0.02  # a progress drop larger than this is a reversal (reward 0)
 
@@ -147,6 +147,11 @@ class RewardConfig:
                 "must be in (0, 0.2) m")
         require(0.0 <= self.progress_tolerance < 0.5, "reward.progress_tolerance", self.progress_tolerance,
                 "must be in [0, 0.5)")
+
+    @property
+    def sigma_x_px(self) -> float:
+        """Standard deviation along the gripper's x axis, pixels (sigma_y_px * anisotropy)."""
+        return self.sigma_y_px * self.anisotropy
 
     def weight(self, primitive: str) -> float:
         return {"push": self.push_weight, "pick": self.pick_weight, "place": self.place_weight}[primitive]

@@ -1,0 +1,42 @@
+"""Task measurements read off a depth heightmap: stack height (stacking) and occupied share (clutter).
+
+Both take `depth_hm`, float32 h x w in metres above the workspace floor (common.heightmap.get_heightmaps).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+# cv2.medianBlur accepts float32 images only with these kernel sizes.
+_FLOAT_MEDIAN_KSIZES = (3, 5)
+
+
+def _as_heightmap(depth_hm: np.ndarray) -> np.ndarray:
+    hm = np.asarray(depth_hm, dtype=np.float32)
+    if hm.ndim != 2 or hm.size == 0:
+        raise ValueError(f"depth_hm must be a non-empty h x w heightmap; got shape {hm.shape}")
+    # A NaN would poison the median and the max; an unknown height is treated like an empty pixel (0 m).
+    return np.nan_to_num(hm, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def stack_height(depth_hm: np.ndarray, cube_size_m: float = 0.05, median_ksize: int = 5) -> int:
+    """Number of cubes in the tallest stack: round(max filtered height / cube_size_m), 0 when empty.
+
+    The median filter (median_ksize x median_ksize pixels) removes speckle: a cluster of outliers counts
+    only if it covers more than half the kernel, far less than a cube's footprint (25 x 25 px for 5 cm cubes
+    at 2 mm/px). There is no upper cap, unlike the authors' code (which reads anything above 0.21 m as 0 and
+    so never sees a 5-cube stack); the workspace z_max bounds what the heightmap can hold instead.
+    """
+    if not cube_size_m > 0:
+        raise ValueError(f"cube_size_m must be > 0; got {cube_size_m}")
+    if median_ksize not in _FLOAT_MEDIAN_KSIZES:
+        raise ValueError(f"median_ksize must be one of {_FLOAT_MEDIAN_KSIZES} (cv2 on float32); got {median_ksize}")
+    filtered = cv2.medianBlur(_as_heightmap(depth_hm), median_ksize)
+    return max(0, int(np.rint(float(filtered.max()) / cube_size_m)))
+
+
+def occupied_fraction(depth_hm: np.ndarray, threshold_m: float) -> float:
+    """Share in [0, 1] of heightmap pixels higher than threshold_m (metres above the floor)."""
+    hm = _as_heightmap(depth_hm)
+    return float(np.count_nonzero(hm > threshold_m)) / hm.size

@@ -1,0 +1,86 @@
+"""Config: defaults, TOML files, overrides, validation messages and the written-out resolved config."""
+
+import dataclasses
+
+import pytest
+
+from romannet.common.config import Config, ExplorationConfig, RewardConfig, WorkspaceConfig, load_config
+from romannet.common.configbase import dumps_toml, write_toml
+from romannet.common.errors import ConfigError
+
+
+def test_defaults_match_the_paper():
+    cfg = load_config()
+    assert (cfg.workspace.height_px, cfg.workspace.width_px) == (224, 224)
+    assert cfg.reward.weight("push") == 0.2 and cfg.reward.weight("pick") == 1.0 and cfg.reward.weight("place") == 1.0
+    assert cfg.reward.anisotropy == 2.0
+    assert (cfg.exploration.alpha, cfg.exploration.sigma, cfg.exploration.beta) == (0.5, 0.33, 0.25)
+    assert cfg.exploration.initial_rate == 0.5
+    assert cfg.camera.intrinsics[0][0] == pytest.approx(618.62)
+
+
+def test_toml_file_then_overrides(tmp_path):
+    path = tmp_path / "run.toml"
+    path.write_text('run_id = "exp1"\n[reward]\npush_weight = 0.5\n[task]\nkind = "stacking"\n')
+    cfg = load_config(path, ["reward.push_weight=0.3", "task.goal_stack_height=5"])
+    assert cfg.run_id == "exp1"
+    assert cfg.reward.push_weight == 0.3  # the override wins over the file
+    assert cfg.task.kind == "stacking" and cfg.task.goal_stack_height == 5
+    assert cfg.task.primitives == ("push", "pick", "place")
+
+
+def test_written_config_reloads_identically(tmp_path):
+    cfg = load_config(overrides=["seed=7", "model.precision=fp32", "exploration.policy=epsilon_greedy"])
+    out = write_toml(cfg, tmp_path / "resolved" / "config.toml")
+    assert load_config(out) == cfg
+    assert "[exploration]" in dumps_toml(cfg)
+
+
+@pytest.mark.parametrize(
+    ("override", "field", "fragment"),
+    [
+        ("exploration.beta=1.5", "exploration.beta", "[0, 1)"),
+        ("reward.anisotropy=0.5", "reward.anisotropy", "sigma_x / sigma_y"),
+        ("reward.kernel_normalization=gauss", "reward.kernel_normalization", "'peak', 'paper'"),
+        ("task.goal_stack_height=7", "task.goal_stack_height", "2..5"),
+        ("model.channels=2.5", "model.channels", "integer"),
+        ("reward.push_weight=true", "reward.push_weight", "number"),
+        ("reward.no_such_field=1", "reward.no_such_field", "unknown field"),
+        ("workspace.resolution_m=0.003", "workspace.x_max_m", "multiple of 4"),
+        ("run_id=bad/id", "run_id", "letters, digits"),
+        ("reward.sigma_y_px=nan", "reward.sigma_y_px", "finite"),
+    ],
+)
+def test_bad_values_name_field_value_and_allowed(override, field, fragment):
+    with pytest.raises(ConfigError) as info:
+        load_config(overrides=[override])
+    assert info.value.field == field
+    assert fragment in str(info.value)
+    assert field in str(info.value)
+
+
+def test_configs_are_frozen():
+    cfg = Config()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.seed = 3  # type: ignore[misc]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.reward.push_weight = 1.0  # type: ignore[misc]
+
+
+def test_direct_construction_validates():
+    with pytest.raises(ConfigError, match="exploration.top_k"):
+        ExplorationConfig(top_k=0)
+    with pytest.raises(ConfigError, match="workspace.x_max_m"):
+        WorkspaceConfig(x_min_m=1.0, x_max_m=0.5)
+    assert RewardConfig(kernel_normalization="paper").kernel_normalization == "paper"
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[reward\npush_weight = ")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
+    with pytest.raises(ConfigError, match="section.field=value"):
+        load_config(overrides=["reward.push_weight"])
