@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from romannet.common.action import pixel_to_position
 from romannet.common.config import CameraConfig, WorkspaceConfig
 from romannet.common.heightmap import (

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+
 from romannet.common.config import RewardConfig
 from romannet.common.reward import (
     clutter_progress,
