@@ -1,6 +1,7 @@
 """The layering the user chose: actor/, learner/ and replay/ import common/ only; nothing uses pickle."""
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -43,4 +44,18 @@ def test_no_pickle_anywhere():
             text = path.read_text()
             names = _imports(path)
             assert "pickle" not in names and "dill" not in names, f"{path} imports pickle"
-            assert "torch.load(" not in text, f"{path} calls torch.load (use safetensors)"
+            # torch.load unpickles; safetensors.torch.load does not (hence the look-behind).
+            assert not re.search(r"(?<![\w.])torch\.load\(", text), f"{path} calls torch.load (use safetensors)"
+
+
+def test_every_package_folder_is_listed_in_pyproject():
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(project["packages"])
+    mapping = project["package-dir"]
+    for pkg, folder in mapping.items():
+        for init in (ROOT / folder).rglob("__init__.py"):
+            rel = init.parent.relative_to(ROOT / folder).parts
+            name = ".".join((pkg, *rel))
+            assert name in listed, f"{init.parent} is a package but {name} is not in pyproject's packages"

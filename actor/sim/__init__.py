@@ -1,0 +1,1 @@
+"""PyBullet simulation of the paper's tasks, behind the Env interface."""
