@@ -1,0 +1,111 @@
+"""ReplayClient over Zenoh: what actors and the learner use to talk to `romannet replay`.
+
+Usage (the session is the caller's; close it with the `with`):
+
+    with open_session(make_config(connect=["tcp/127.0.0.1:7447"], listen=[])) as session:
+        client = ZenohReplayClient(session, run_id="run-1")
+        client.wait_until_ready(timeout_s=10)
+        ack = client.insert(transition)          # returns once the server has it on disk
+        batch = client.sample(8, timeout_s=5)    # TimeoutError while the rate limiter holds
+
+Every request has a timeout; a server that is not running gives NoReplyError (a TimeoutError) after at
+most timeout_s, never a hang. Inserts are idempotent on (actor_id, episode_id, step), so an actor that
+got no acknowledgement simply sends the same transition again and gets status "duplicate".
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import uuid
+
+import zenoh
+
+from . import wire
+from .keys import RunKeys
+from .wire_messages import InsertAckMsg, PriorityUpdateMsg, SampleBatchMsg, SampleRequestMsg, TransitionMsg
+from .zenoh_session import RemoteError, query_one, wait_for_liveliness
+
+log = logging.getLogger(__name__)
+
+# The server answers a request that its rate limiter holds back a little before the client's deadline,
+# so the client hears "rate_limited" rather than silence. Seconds.
+_REPLY_MARGIN_S = 0.25
+
+
+def _wait_ms(timeout_s: float) -> int:
+    """The rate-limiter wait to ask the server for, in ms: the timeout less a margin for the reply."""
+    return int(max(0.0, timeout_s - min(_REPLY_MARGIN_S, timeout_s / 4)) * 1000)
+
+
+class RateLimitedError(RemoteError, TimeoutError):
+    """The server's rate limiter held the request back for the whole wait: a sample (too few items, or the
+    learner samples faster than samples_per_insert allows) or an insert (the learner lags). Retry later."""
+
+
+class ZenohReplayClient:
+    """ReplayClient (common/interfaces.py) backed by a replay server reached through `session`.
+
+    run_id selects the server (`romannet/@v1/<run_id>/replay/...`); expected_shape (h, w) in pixels, if
+    given, is enforced on every sampled transition.
+    """
+
+    def __init__(self, session: zenoh.Session, run_id: str, expected_shape: tuple[int, int] | None = None):
+        self._session = session
+        self.keys = RunKeys(run_id)
+        self._expected_shape = expected_shape
+
+    def wait_until_ready(self, timeout_s: float = 10.0) -> bool:
+        """True once the server's liveliness token is visible (it serves from then on), else False."""
+        return wait_for_liveliness(self._session, self.keys.replay_alive, timeout_s)
+
+    def insert(self, transition: TransitionMsg, timeout_s: float = 10.0) -> InsertAckMsg:
+        """Insert; returns the acknowledgement once the transition is durable on the server.
+
+        Raises NoReplyError (TimeoutError) when the server did not answer in timeout_s seconds (the
+        transition may or may not be stored: send it again), RemoteError when it refused the bytes.
+        A transition the store itself refuses comes back as an ack with status "rejected".
+        """
+        return self.insert_encoded(wire.encode_transition(transition), timeout_s)
+
+    def insert_encoded(self, data: bytes, timeout_s: float = 10.0) -> InsertAckMsg:
+        """insert() for a transition already encoded with wire.encode_transition (actors that also
+        record MCAP encode once and reuse the bytes)."""
+        try:
+            reply = query_one(self._session, self.keys.replay_insert, data, timeout_s,
+                              parameters=f"wait_ms={_wait_ms(timeout_s)}")
+        except RemoteError as err:
+            if err.reason == "rate_limited":
+                raise RateLimitedError(err.key, err.reason, err.detail) from None
+            raise
+        return wire.decode_insert_ack(reply)
+
+    def sample(self, batch_size: int, timeout_s: float = 10.0) -> SampleBatchMsg:
+        """A prioritized batch of batch_size transitions (decoded and validated).
+
+        Raises RateLimitedError (a TimeoutError) when the rate limiter held the request for the whole
+        timeout, NoReplyError (a TimeoutError) when the server did not answer.
+        """
+        request = SampleRequestMsg(uuid.uuid4().hex, batch_size)
+        try:
+            reply = query_one(self._session, self.keys.replay_sample, wire.encode_sample_request(request),
+                              timeout_s, parameters=f"wait_ms={_wait_ms(timeout_s)}")
+        except RemoteError as err:
+            if err.reason == "rate_limited":
+                raise RateLimitedError(err.key, err.reason, err.detail) from None
+            raise
+        batch = wire.decode_sample_batch(reply, self._expected_shape)
+        if batch.request_id != request.request_id:  # a reply meant for another request: a server bug
+            raise RemoteError(self.keys.replay_sample, "mismatch",
+                              f"reply is for request {batch.request_id}, not {request.request_id}")
+        return batch
+
+    def update_priorities(self, update: PriorityUpdateMsg) -> None:
+        """Publish new priorities by item id (fire and forget; ids of evicted items are ignored)."""
+        self._session.put(self.keys.replay_priorities, wire.encode_priority_update(update),
+                          congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def stats(self, timeout_s: float = 10.0) -> dict:
+        """The server's statistics: buffer size and bytes, rates, rejected counts by reason, ..."""
+        reply = query_one(self._session, self.keys.replay_stats, None, timeout_s)
+        return json.loads(reply.decode("utf-8"))

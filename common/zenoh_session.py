@@ -1,0 +1,153 @@
+"""Opening Zenoh sessions and making one-reply queries, the way every component of the fleet does it.
+
+Pitfalls this module exists to avoid (see docs and design section 2):
+- A session that is never closed keeps Zenoh's threads alive and hangs the interpreter at exit, so
+  sessions are only handed out by the `open_session` context manager, which closes in `finally`.
+- Sessions do not survive `fork`: open them in the process that uses them (start children with spawn).
+- Multicast scouting is off by default: on a shared machine it would join other people's sessions.
+- `Session.get` without a timeout can wait forever, and with no matching queryable it returns at once
+  with no reply. `query_one` turns both into a TimeoutError subclass, and an error reply into RemoteError.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import socket
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import zenoh
+
+from .errors import RomannetError
+
+log = logging.getLogger(__name__)
+
+# The embedded default (same as deploy/zenoh-local.json5): peer mode on loopback, no multicast.
+DEFAULT_CONFIG_JSON5 = """{
+  mode: "peer",
+  listen: { endpoints: ["tcp/127.0.0.1:0"] },
+  scouting: { multicast: { enabled: false }, gossip: { enabled: true } },
+}"""
+# Pause between attempts while no queryable matches yet: right after a session opens, its connection
+# and the remote declarations take ~0.1-0.5 s to arrive, and a get in that window returns no reply.
+_RETRY_PAUSE_S = 0.05
+
+
+class ZenohQueryError(RomannetError):
+    """A Zenoh query did not produce a usable reply."""
+
+
+class NoReplyError(ZenohQueryError, TimeoutError):
+    """No queryable replied in time: the peer is not running, unreachable, or too slow."""
+
+
+class RemoteError(ZenohQueryError):
+    """The queryable replied with an error. `reason` is a short token (e.g. "rate_limited", "undecodable"),
+    `detail` the human-readable rest of the message."""
+
+    def __init__(self, key: str, reason: str, detail: str):
+        self.key, self.reason, self.detail = key, reason, detail
+        super().__init__(f"{key} refused the request ({reason}): {detail}")
+
+
+def format_error(reason: str, detail: str) -> bytes:
+    """The payload of an error reply: `<reason>: <detail>` in UTF-8 (parsed by query_one)."""
+    return f"{reason}: {detail}".encode()
+
+
+def parse_error(payload: bytes) -> tuple[str, str]:
+    """(reason, detail) of an error reply payload; reason is "error" when the payload has no token."""
+    text = payload.decode("utf-8", errors="replace")
+    reason, sep, detail = text.partition(": ")
+    if not sep or not reason or " " in reason:
+        return "error", text
+    return reason, detail
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free a moment ago (bind to port 0, read it, release it). Racy by nature;
+    fine for tests and for `romannet up` on one machine."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def make_config(config_file: str | Path | None = None, listen: Sequence[str] | None = None,
+                connect: Sequence[str] | None = None, multicast: bool = False) -> zenoh.Config:
+    """A zenoh.Config from a json5 file (or the embedded loopback default), then overrides.
+
+    listen / connect: endpoints like "tcp/127.0.0.1:7447"; None keeps the file's, [] clears them.
+    multicast: multicast scouting; off unless asked, whatever the file says.
+    """
+    if config_file is not None:
+        path = Path(config_file)
+        if not path.is_file():
+            raise FileNotFoundError(f"zenoh config file {path} does not exist")
+        config = zenoh.Config.from_file(str(path))
+    else:
+        config = zenoh.Config.from_json5(DEFAULT_CONFIG_JSON5)
+    if listen is not None:
+        config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect is not None:
+        config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast)))
+    return config
+
+
+@contextlib.contextmanager
+def open_session(config: zenoh.Config | None = None) -> Iterator[zenoh.Session]:
+    """Open a session (default: make_config()) and close it on exit, also on errors."""
+    session = zenoh.open(config if config is not None else make_config())
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def query_one(session: zenoh.Session, key: str, payload: bytes | None = None, timeout_s: float = 10.0,
+              parameters: str = "") -> bytes:
+    """Send one query and return the payload of the first reply, as bytes.
+
+    Raises NoReplyError (a TimeoutError) when nothing answered within timeout_s seconds, RemoteError when
+    the queryable answered with an error. While no queryable matches (the get returns at once with no
+    reply) the query is re-sent until the deadline: such a query was never delivered, so this is safe even
+    for requests that are not idempotent.
+    """
+    deadline = time.monotonic() + timeout_s
+    selector = f"{key}?{parameters}" if parameters else key
+    attempts = 0
+    while True:
+        remaining_s = deadline - time.monotonic()
+        if remaining_s <= 0:
+            break
+        attempts += 1
+        started = time.monotonic()
+        replies = session.get(selector, payload=payload, timeout=remaining_s,
+                              congestion_control=zenoh.CongestionControl.BLOCK,
+                              consolidation=zenoh.ConsolidationMode.NONE)
+        for reply in replies:
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+            reason, detail = parse_error(reply.err.payload.to_bytes())
+            raise RemoteError(key, reason, detail)
+        if time.monotonic() - started >= 0.9 * remaining_s:
+            break  # it was delivered (or lost) and waited out the timeout: re-sending cannot help now
+        time.sleep(min(_RETRY_PAUSE_S, max(0.0, deadline - time.monotonic())))
+    raise NoReplyError(f"no reply from {key} within {timeout_s:.3g} s ({attempts} attempt(s)): is the "
+                       "server running and reachable (check the listen/connect endpoints and the run id)?")
+
+
+def wait_for_liveliness(session: zenoh.Session, key: str, timeout_s: float = 10.0) -> bool:
+    """True once a liveliness token matching key is alive, False if none appeared within timeout_s."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        remaining_s = deadline - time.monotonic()
+        if remaining_s <= 0:
+            return False
+        for reply in session.liveliness().get(key, timeout=min(remaining_s, 1.0)):
+            if reply.ok is not None:
+                return True
+        time.sleep(min(_RETRY_PAUSE_S, max(0.0, deadline - time.monotonic())))

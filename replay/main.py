@@ -1,0 +1,70 @@
+"""`romannet replay`: run the replay server in the foreground until SIGTERM or SIGINT.
+
+    romannet replay --config run.toml --dir runs/run-1/replay --listen tcp/127.0.0.1:7447
+
+The TOML file is the fleet config (configs/default.toml): run_id picks the keys, [workspace] the
+heightmap size every transition must have, [replay] the buffer (common/config_replay.py). A signal
+sets a stop event; the server then stops taking queries, finishes queued work, snapshots, closes the
+store and the session, and the process exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+from romannet.common.config import Config
+from romannet.common.config_replay import ReplayConfig
+from romannet.common.configbase import apply_overrides, from_dict, read_toml
+from romannet.common.zenoh_session import make_config
+
+from .server import ServerLimits, run_replay_server
+
+log = logging.getLogger(__name__)
+
+
+def load_replay_config(path: str | Path | None, overrides: list[str]) -> tuple[Config, ReplayConfig]:
+    """(fleet config, replay config) from the TOML file and `section.field=value` overrides.
+
+    Works whether or not the fleet Config has a `replay` section yet: the [replay] table is read into
+    ReplayConfig either way, and the rest into Config.
+    """
+    data: dict[str, Any] = read_toml(path) if path is not None else {}
+    data = apply_overrides(data, list(overrides))
+    has_section = any(f.name == "replay" for f in dataclasses.fields(Config))
+    replay_data = data.get("replay", {}) if has_section else data.pop("replay", {})
+    config = from_dict(Config, data)
+    replay = getattr(config, "replay", None) if has_section else None
+    if not isinstance(replay, ReplayConfig):
+        replay = from_dict(ReplayConfig, replay_data, prefix="replay")
+    return config, replay
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the server for parsed CLI arguments (see romannet/cli.py); returns the exit code."""
+    config, replay_cfg = load_replay_config(args.config, args.overrides)
+    zenoh_config = make_config(args.zenoh_config, listen=args.listen or None, connect=args.connect or None)
+    ws = config.workspace
+    limits = ServerLimits(max_insert_bytes=replay_cfg.max_item_bytes,
+                          expected_shape=(ws.height_px, ws.width_px))
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        log.info("received %s: shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        Path(args.dir).mkdir(parents=True, exist_ok=True)
+        run_replay_server(replay_cfg, args.dir, zenoh_config, stop, run_id=config.run_id, limits=limits,
+                          ready=lambda server: log.info("replay server ready (run %s, dir %s)",
+                                                        config.run_id, args.dir))
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
