@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from .config_replay import ReplayConfig
 from .configbase import apply_overrides, from_dict, read_toml, require
 
 PRIMITIVES = ("push", "pick", "place")
@@ -201,6 +202,7 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
 
     def __post_init__(self) -> None:
         require(bool(self.run_id) and all(c.isalnum() or c in "-_" for c in self.run_id), "run_id",

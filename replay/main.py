@@ -11,16 +11,13 @@ store and the session, and the process exits 0.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 import signal
 import threading
 from pathlib import Path
-from typing import Any
 
-from romannet.common.config import Config
+from romannet.common.config import Config, load_config
 from romannet.common.config_replay import ReplayConfig
-from romannet.common.configbase import apply_overrides, from_dict, read_toml
 from romannet.common.zenoh_session import make_config
 
 from .server import ServerLimits, run_replay_server
@@ -29,20 +26,9 @@ log = logging.getLogger(__name__)
 
 
 def load_replay_config(path: str | Path | None, overrides: list[str]) -> tuple[Config, ReplayConfig]:
-    """(fleet config, replay config) from the TOML file and `section.field=value` overrides.
-
-    Works whether or not the fleet Config has a `replay` section yet: the [replay] table is read into
-    ReplayConfig either way, and the rest into Config.
-    """
-    data: dict[str, Any] = read_toml(path) if path is not None else {}
-    data = apply_overrides(data, list(overrides))
-    has_section = any(f.name == "replay" for f in dataclasses.fields(Config))
-    replay_data = data.get("replay", {}) if has_section else data.pop("replay", {})
-    config = from_dict(Config, data)
-    replay = getattr(config, "replay", None) if has_section else None
-    if not isinstance(replay, ReplayConfig):
-        replay = from_dict(ReplayConfig, replay_data, prefix="replay")
-    return config, replay
+    """(fleet config, its replay section) from the TOML file and `section.field=value` overrides."""
+    config = load_config(path, overrides)
+    return config, config.replay
 
 
 def run(args: argparse.Namespace) -> int:
