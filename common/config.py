@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from .config_replay import ReplayConfig
+from .config_sim import SimConfig
 from .configbase import apply_overrides, from_dict, read_toml, require
 
 PRIMITIVES = ("push", "pick", "place")
@@ -203,6 +204,7 @@ class Config:
     reward: RewardConfig = field(default_factory=RewardConfig)
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
 
     def __post_init__(self) -> None:
         require(bool(self.run_id) and all(c.isalnum() or c in "-_" for c in self.run_id), "run_id",

@@ -1,0 +1,221 @@
+"""SimEnv: the PyBullet simulator behind common.interfaces.Env (reset / step / close).
+
+The robot is the Panda arm (sim.robot = "arm") or the floating Panda hand ("gripper", see gripper.py).
+
+One PyBullet DIRECT client per SimEnv. Deterministic: the same seed gives the same scene, and the same
+actions then give the same outcomes (fixed time step, fixed call order, the episode's own numpy Generator).
+
+Per step: check the action (allowed primitive, holding state, pixel inside the heightmap), turn the pixel
+into a world pose with common.action.pixel_to_position on the current depth heightmap, run the primitive,
+capture a new observation, and judge it: X (push moved an object > push_moved_threshold_m, pick holds an
+object after the lift, place raised the heightmap stack), P before/after (common.reward), R_tp. Episodes
+end with done_reason "done", "unstable", "consecutive_failures" or "step_limit" (in that priority).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from romannet.common.action import Action, pixel_to_position
+from romannet.common.config import CameraConfig, Config, RewardConfig, TaskConfig, WorkspaceConfig
+from romannet.common.config_sim import SimConfig
+from romannet.common.interfaces import Observation, StepResult
+from romannet.common.reward import (
+    clutter_progress,
+    progress_reversed,
+    stacking_progress,
+    task_progress_reward,
+)
+from romannet.common.stack import stack_height
+
+from .gripper import FloatingGripper
+from .primitives import PrimitiveResult, Primitives
+from .robot import Hand, PandaArm
+from .scene import Scene
+from .tasks import build_scene, object_specs, objects_in_workspace, stack_height_from_poses, task_def
+
+log = logging.getLogger(__name__)
+
+PUSH_PATCH_RADIUS_M = 0.012  # the closed fingers' footprint: the push starts above the highest point in it
+PUSH_CLEARANCE_M = 0.005  # fingertips this far above that point
+PUSH_MIN_HEIGHT_M = 0.01  # ... and never lower than this above the table (objects are >= 2.5 cm tall)
+PLACE_PATCH_RADIUS_M = 0.015  # the held object's footprint, roughly: it is lowered onto the highest point
+
+
+class SimEnv:
+    """The paper's tasks in PyBullet with a Panda arm; see the module docstring."""
+
+    def __init__(self, workspace: WorkspaceConfig | None = None, camera: CameraConfig | None = None,
+                 task: TaskConfig | None = None, reward: RewardConfig | None = None,
+                 sim: SimConfig | None = None):
+        self.ws = workspace or WorkspaceConfig()
+        self.cam = camera or CameraConfig()
+        self.task = task or TaskConfig()
+        self.reward_cfg = reward or RewardConfig()
+        self.sim = sim or SimConfig()
+        self.primitives: tuple[str, ...] = self.task.primitives
+        self.task_def = task_def(self.task, self.sim)
+        self.scene = Scene(self.ws, self.cam, self.sim)
+        self.arm: Hand | None = None  # the Panda arm, or the floating hand (sim.robot = "gripper")
+        self.prims: Primitives | None = None
+        self._next_seed = 0
+        self._episode_over = True
+
+    @classmethod
+    def from_config(cls, cfg: Config, sim: SimConfig | None = None) -> SimEnv:
+        """Build from the root Config's sections (`sim` overrides cfg.sim when given)."""
+        return cls(cfg.workspace, cfg.camera, cfg.task, cfg.reward, sim or cfg.sim)
+
+    # ------------------------------------------------------------------------------------- lifecycle
+    def reset(self, seed: int | None = None) -> Observation:
+        """New episode: a fresh world built from `seed` (None: the previous seed + 1, starting at 0)."""
+        if seed is None:
+            seed = self._next_seed
+        self._next_seed = seed + 1
+        self.seed = seed
+        self.rng = np.random.default_rng(seed)
+        self.scene.reset_world()
+        if self.arm is not None:
+            self.arm.close()
+        robot_cls = PandaArm if self.sim.robot == "arm" else FloatingGripper
+        self.arm = robot_cls(self.scene.client, self.sim)
+        self.prims = Primitives(self.scene, self.arm, self.sim)
+        build_scene(self.scene, self.task_def, object_specs(self.task_def, self.sim, self.ws, self.rng))
+        self.holding, self.held_body, self.hang_m = False, None, 0.0
+        self.steps = 0
+        self.consecutive_failures = 0
+        self.picks = self.successful_picks = 0
+        self._episode_over = False
+        self.obs = self._observe()
+        self.depth_start = self.obs.depth_hm
+        self.progress = self._progress(self.obs.depth_hm)
+        return self.obs
+
+    def close(self) -> None:
+        """Release the PyBullet clients. Idempotent."""
+        if self.arm is not None:
+            self.arm.close()
+        self.scene.close()
+
+    def __enter__(self) -> SimEnv:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ----------------------------------------------------------------------------------- observation
+    def _observe(self) -> Observation:
+        t0 = time.perf_counter()
+        frame = self.scene.render(self.rng)
+        color_hm, depth_hm = self.scene.heightmaps(frame)
+        self.last_observe_s = time.perf_counter() - t0  # wall-clock, for the benchmark only
+        return Observation(color_hm, depth_hm, self.holding, frame.color, frame.depth_m)
+
+    def _progress(self, depth_hm: np.ndarray) -> float:
+        if self.task_def.progress == "stacking":
+            return stacking_progress(self.stack_height_hm(depth_hm), self.task.goal_stack_height)
+        return clutter_progress(depth_hm, self.depth_start, self.reward_cfg.occupied_height_m)
+
+    def stack_height_hm(self, depth_hm: np.ndarray) -> int:
+        """Stack height in cubes measured on a depth heightmap (what the reward uses, as on a real robot)."""
+        return stack_height(depth_hm, self.task.cube_size_m)
+
+    def stack_height_gt(self) -> int:
+        """Ground-truth stack height in cubes from object poses (metrics and tests); the held cube excluded."""
+        return stack_height_from_poses(self.scene, self.task.cube_size_m, exclude=self.held_body)
+
+    # ------------------------------------------------------------------------------------------ step
+    def _patch_max(self, row: int, col: int, radius_m: float) -> float:
+        """Highest depth_hm value (m above the table) within radius_m of pixel (row, col)."""
+        r = max(1, round(radius_m / self.ws.resolution_m))
+        hm = self.obs.depth_hm
+        return float(hm[max(0, row - r):row + r + 1, max(0, col - r):col + r + 1].max())
+
+    def _refusal(self, action: Action) -> str:
+        """Why the action cannot be attempted at all ("" if it can)."""
+        if action.primitive not in self.primitives:
+            return "primitive_not_allowed"
+        if action.primitive == "place" and not self.holding:
+            return "not_holding"
+        if action.primitive != "place" and self.holding:
+            return "holding_object"
+        if not (0 <= action.row < self.ws.height_px and 0 <= action.col < self.ws.width_px):
+            return "out_of_workspace"
+        return ""
+
+    def _execute(self, action: Action) -> PrimitiveResult:
+        assert self.prims is not None
+        x, y, z = pixel_to_position(action.row, action.col, self.obs.depth_hm, self.ws)
+        if action.primitive == "push":
+            z_push = max(self._patch_max(action.row, action.col, PUSH_PATCH_RADIUS_M) + PUSH_CLEARANCE_M,
+                         PUSH_MIN_HEIGHT_M)
+            return self.prims.push(x, y, z_push + self.ws.z_min_m, action.angle_rad)
+        if action.primitive == "pick":
+            return self.prims.pick(x, y, z, action.angle_rad)
+        if self.prims.held_body() != self.held_body:  # the object slipped out on the way
+            return PrimitiveResult(False, "dropped", 0)
+        z_place = self._patch_max(action.row, action.col, PLACE_PATCH_RADIUS_M) + self.ws.z_min_m
+        return self.prims.place(x, y, z_place, action.angle_rad, self.hang_m)
+
+    def step(self, action: Action) -> StepResult:
+        """Execute one primitive; failures (unreachable, nothing grasped, ...) come back as success False."""
+        if self._episode_over:
+            raise RuntimeError("the episode is over (or never started): call reset() first")
+        self.steps += 1
+        p_before, hm_before = self.progress, self.obs.depth_hm
+        reason = self._refusal(action)
+        result = PrimitiveResult(False, reason, 0) if reason else self._execute(action)
+        success, detail = result.success, result.reason
+        if action.primitive == "pick" and not reason:
+            self.picks += 1
+            if success and self.task_def.remove_picked:
+                assert result.held_body is not None
+                self.scene.remove_object(result.held_body)
+                self.arm.set_fingers(closed=False)
+            elif success:
+                self.holding, self.held_body, self.hang_m = True, result.held_body, result.hang_m
+            self.successful_picks += int(success)
+        if action.primitive == "place" and not reason:
+            self.holding, self.held_body, self.hang_m = False, None, 0.0
+
+        unstable = self.scene.instability()
+        self.obs = self._observe()
+        if action.primitive == "place" and success:
+            success = self.stack_height_hm(self.obs.depth_hm) > self.stack_height_hm(hm_before)
+            detail = "" if success else "stack_not_higher"
+        p_after = self._progress(self.obs.depth_hm)
+        self.progress = p_after
+        reversed_ = progress_reversed(p_before, p_after, self.reward_cfg.progress_tolerance)
+        reward = task_progress_reward(action.primitive, success, p_after, self.reward_cfg, reversed=reversed_)
+        self.consecutive_failures = 0 if success else self.consecutive_failures + 1
+
+        done_reason = self._done_reason(unstable)
+        self._episode_over = bool(done_reason)
+        if unstable:
+            log.warning("episode ended unstable (seed %d, step %d): %s", self.seed, self.steps, unstable)
+        info: dict[str, float | int | str | bool] = {
+            "seed": self.seed, "step": self.steps, "physics_steps": result.steps,
+            "objects_in_workspace": objects_in_workspace(self.scene),
+            "stack_height_gt": self.stack_height_gt(), "stack_height_hm": self.stack_height_hm(self.obs.depth_hm),
+            "moved_m": result.moved_m, "consecutive_failures": self.consecutive_failures,
+            "unstable": unstable,
+        }
+        return StepResult(self.obs, success, p_before, p_after, reward, bool(done_reason), done_reason,
+                          detail, info)
+
+    def _done_reason(self, unstable: str) -> str:
+        if unstable:
+            return "unstable"
+        if self.task_def.progress == "stacking":
+            if self.stack_height_gt() >= self.task.goal_stack_height:
+                return "done"
+        elif objects_in_workspace(self.scene) == 0:
+            return "done"
+        if self.consecutive_failures >= self.sim.max_consecutive_failures:
+            return "consecutive_failures"
+        if self.steps >= self.sim.max_steps:
+            return "step_limit"
+        return ""

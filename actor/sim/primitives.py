@@ -1,0 +1,145 @@
+"""The paper's three motion primitives, built from robot motions and bounded in simulated steps.
+
+All positions are world (= robot base) frame metres with the table top at z = 0; heights are fingertip
+heights (see robot.py). `angle_rad` follows common.action: push direction for a push, finger-closing axis
+for pick/place. A primitive never raises for an unreachable pose, a blocked path or an empty grasp: it
+returns a PrimitiveResult with success False and a reason, and always ends with the arm back home (out of
+the camera's view) when the step budget allows.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from romannet.common.config_sim import SimConfig
+
+from .robot import Hand
+from .scene import Scene, StepBudget
+
+log = logging.getLogger(__name__)
+
+APPROACH_TOL_M = 0.01  # farther than this from a pose in free space above the scene = unreachable
+DESCENT_SPEED_MPS = 0.25  # the last SLOW_ZONE_M above a contact height: slow, so contacts stay gentle
+SLOW_ZONE_M = 0.04
+LIFT_SPEED_MPS = 0.6
+PUSH_SPEED_MPS = 0.25
+PLACE_GAP_M = 0.008  # the held object's bottom stops this far above the pose before the fingers open
+
+
+@dataclass(frozen=True)
+class PrimitiveResult:
+    """What a primitive did. reason is "" on success, else a short code ("unreachable", "nothing_grasped", ...)."""
+
+    success: bool
+    reason: str
+    steps: int  # physics steps used
+    held_body: int | None = None  # pick: the body held after the lift
+    hang_m: float = 0.0  # pick: how far the held body's bottom hangs below the fingertips
+    moved_m: float = 0.0  # push: largest displacement of any object
+
+
+class Primitives:
+    """push / pick / place for one arm in one scene."""
+
+    def __init__(self, scene: Scene, arm: Hand, sim: SimConfig):
+        self.scene, self.arm, self.sim = scene, arm, sim
+
+    def _budget(self) -> StepBudget:
+        return StepBudget(self.scene.client, self.sim.max_primitive_steps)
+
+    def _finish(self, budget: StepBudget, success: bool, reason: str, **extra) -> PrimitiveResult:
+        """Return home (the camera must see the scene unoccluded) and account the steps."""
+        self.arm.go_home(budget)
+        self.scene.steps_total += budget.used
+        if reason:
+            log.debug("primitive failed: %s", reason)
+        return PrimitiveResult(success, reason, budget.used, **extra)
+
+    def _approach(self, x_m: float, y_m: float, z_m: float, angle_rad: float, budget: StepBudget) -> bool:
+        err = self.arm.move_tips(np.array([x_m, y_m, z_m]), angle_rad, budget, tol_m=APPROACH_TOL_M / 2)
+        return err <= APPROACH_TOL_M
+
+    def _descend(self, x_m: float, y_m: float, z_m: float, z_contact_m: float, angle_rad: float,
+                 budget: StepBudget) -> None:
+        """Straight down to z_m: at full speed to SLOW_ZONE_M above z_contact_m, then slowly."""
+        z_slow = z_contact_m + SLOW_ZONE_M
+        if self.arm.tip_position()[2] > z_slow:
+            self.arm.move_tips(np.array([x_m, y_m, z_slow]), angle_rad, budget)
+        self.arm.move_tips(np.array([x_m, y_m, z_m]), angle_rad, budget, DESCENT_SPEED_MPS)
+
+    # ------------------------------------------------------------------------------------------ push
+    def push(self, x_m: float, y_m: float, z_m: float, angle_rad: float) -> PrimitiveResult:
+        """Closed gripper at (x, y), fingertips at z_m (a safe height read from the heightmap by the
+        caller), then push_distance_m along angle_rad, the end clipped to the workspace."""
+        budget = self._budget()
+        before = self.scene.positions()
+        self.arm.set_fingers(closed=True)
+        z_above = z_m + self.sim.safe_height_m
+        if not self._approach(x_m, y_m, z_above, angle_rad, budget):
+            return self._finish(budget, False, "unreachable")
+        self._descend(x_m, y_m, z_m, z_m, angle_rad, budget)
+        ws = self.scene.ws
+        end_x = float(np.clip(x_m + self.sim.push_distance_m * math.cos(angle_rad), ws.x_min_m, ws.x_max_m))
+        end_y = float(np.clip(y_m + self.sim.push_distance_m * math.sin(angle_rad), ws.y_min_m, ws.y_max_m))
+        self.arm.move_tips(np.array([end_x, end_y, z_m]), angle_rad, budget, PUSH_SPEED_MPS)
+        self.arm.move_tips(np.array([end_x, end_y, z_above]), angle_rad, budget)
+        self.arm.set_fingers(closed=False)
+        self.scene.settle(120)
+        after = self.scene.positions()
+        moved = float(np.max(np.linalg.norm(after - before, axis=1))) if len(before) else 0.0
+        ok = moved > self.sim.push_moved_threshold_m
+        return self._finish(budget, ok, "" if ok else "nothing_moved", moved_m=moved)
+
+    # ------------------------------------------------------------------------------------------ pick
+    def pick(self, x_m: float, y_m: float, z_m: float, angle_rad: float) -> PrimitiveResult:
+        """Top-down grasp: fingertips pick_depth_m below the pose z (not below the table), close, lift.
+
+        Success = after the lift the finger gap is not closed AND both fingers touch the same object.
+        """
+        budget = self._budget()
+        self.arm.set_fingers(closed=False)
+        if not self._approach(x_m, y_m, self.sim.lift_height_m, angle_rad, budget):
+            return self._finish(budget, False, "unreachable")
+        z_grasp = max(z_m - self.sim.pick_depth_m, self.sim.fingertip_clearance_m)
+        self._descend(x_m, y_m, z_grasp, max(z_m, z_grasp), angle_rad, budget)
+        self.arm.actuate_fingers(closed=True, budget=budget)
+        self.arm.move_tips(np.array([x_m, y_m, self.sim.lift_height_m]), angle_rad, budget, LIFT_SPEED_MPS)
+        if budget.exhausted:
+            return self._finish(budget, False, "step_budget")
+        held = self.held_body()
+        if held is None:
+            self.arm.set_fingers(closed=False)
+            return self._finish(budget, False, "nothing_grasped")
+        hang = float(self.arm.tip_position()[2] - self.scene.bottom_z(held))
+        return self._finish(budget, True, "", held_body=held, hang_m=hang)
+
+    def held_body(self) -> int | None:
+        """The object held between the fingers: gap not closed and both fingers in contact with it."""
+        if self.arm.finger_gap_m() <= self.sim.grasp_min_gap_m:
+            return None
+        for body in self.scene.objects:
+            if self.arm.fingers_touching(body):
+                return body
+        return None
+
+    # ----------------------------------------------------------------------------------------- place
+    def place(self, x_m: float, y_m: float, z_m: float, angle_rad: float, hang_m: float) -> PrimitiveResult:
+        """Carry the held object over (x, y), lower it until its bottom is just above z_m, open, retreat.
+
+        hang_m: how far the held object hangs below the fingertips (measured at the pick). Whether the
+        stack got higher is judged by the caller from the next heightmap.
+        """
+        budget = self._budget()
+        z_release = z_m + hang_m + PLACE_GAP_M
+        z_above = max(self.sim.lift_height_m, z_release + 0.05)
+        if not self._approach(x_m, y_m, z_above, angle_rad, budget):
+            return self._finish(budget, False, "unreachable")
+        self._descend(x_m, y_m, z_release, z_release, angle_rad, budget)
+        self.arm.actuate_fingers(closed=False, budget=budget)
+        self.arm.move_tips(np.array([x_m, y_m, z_above]), angle_rad, budget)
+        self.scene.settle(120)
+        return self._finish(budget, True, "")

@@ -1,0 +1,117 @@
+"""The paper's three tasks as small declarative definitions, plus the scene builders and measurements.
+
+clutter     N objects of `sim.object_set` dropped at random; a picked object is removed; done when no
+            object is left in the workspace. Progress: share of the initial clutter footprint cleared.
+arrangement a test-case file (VPG's format) placed as written; otherwise like clutter.
+stacking    `sim.num_stacking_cubes` 5 cm cubes placed flat at random, apart from each other; a picked cube stays in the hand until
+            placed; done when the ground-truth stack reaches `task.goal_stack_height`. Progress: stack
+            height from the depth heightmap / goal.
+Positions in the world (= robot base) frame, metres; table top z = 0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from romannet.common.config import TaskConfig, WorkspaceConfig
+from romannet.common.config_sim import SimConfig
+
+from .arrangements import default_cases, load_case
+from .objects import CUBE_SIZE_M, ObjectSpec, random_object_specs, spawn_object
+from .scene import Scene
+
+log = logging.getLogger(__name__)
+
+DROP_STEPS = 60  # physics steps between two dropped objects, so they land one after another
+SPREAD_MIN_DISTANCE_M = 0.09  # stacking cubes start this far apart (centre to centre): none touches another
+SPREAD_TRIES = 100
+
+
+@dataclass(frozen=True)
+class TaskDef:
+    """What distinguishes the tasks, declaratively."""
+
+    kind: str
+    object_set: str  # the set objects are drawn from
+    num_objects: int  # 0: given by the case file
+    drop: bool  # True: objects fall one by one from drop_height_m; False: placed as specified
+    remove_picked: bool  # clutter removal: a successful pick takes the object out of the scene
+    progress: str  # "clutter" (occupied footprint) or "stacking" (stack height / goal)
+
+
+def task_def(task: TaskConfig, sim: SimConfig) -> TaskDef:
+    """The definition of task.kind under the simulator settings."""
+    if task.kind == "clutter":
+        return TaskDef("clutter", sim.object_set, sim.num_objects, True, True, "clutter")
+    if task.kind == "arrangement":
+        return TaskDef("arrangement", sim.object_set, 0, False, True, "clutter")
+    if task.kind == "stacking":
+        # Placed flat and apart (not dropped): dropped cubes often land on each other, and an episode
+        # that starts with a 2-stack would make the stacking efficiency (ideal 2(h-1) actions) meaningless.
+        return TaskDef("stacking", "cubes", sim.num_stacking_cubes, False, False, "stacking")
+    raise ValueError(f"unknown task kind {task.kind!r}: expected clutter, arrangement or stacking")
+
+
+def case_path(sim: SimConfig, rng: np.random.Generator) -> Path:
+    """The arrangement to load: sim.case_file if set, else one of the shipped cases chosen by the rng."""
+    if sim.case_file:
+        return Path(sim.case_file)
+    cases = default_cases()
+    if not cases:
+        raise FileNotFoundError("no arrangement case files are shipped (actor/sim/cases/*.txt)")
+    return cases[int(rng.integers(len(cases)))]
+
+
+def object_specs(td: TaskDef, sim: SimConfig, ws: WorkspaceConfig, rng: np.random.Generator) -> list[ObjectSpec]:
+    """The episode's objects, drawn from rng (deterministic for a given seed)."""
+    if td.kind == "arrangement":
+        return load_case(case_path(sim, rng), ws)
+    specs = random_object_specs(rng, td.object_set, td.num_objects, ws, drop_height_m=sim.drop_height_m)
+    return specs if td.drop else _spread_on_table(specs, rng, ws)
+
+
+def _spread_on_table(specs: list[ObjectSpec], rng: np.random.Generator, ws: WorkspaceConfig,
+                     margin_m: float = 0.05) -> list[ObjectSpec]:
+    """The same objects resting on the table, centres at least SPREAD_MIN_DISTANCE_M apart (rejection
+    sampling from rng; after SPREAD_TRIES misses an object keeps its drawn x, y)."""
+    placed: list[np.ndarray] = []
+    out = []
+    for spec in specs:
+        xy = np.array(spec.position_m[:2])
+        for _ in range(SPREAD_TRIES):
+            if all(np.linalg.norm(xy - q) >= SPREAD_MIN_DISTANCE_M for q in placed):
+                break
+            xy = np.array([rng.uniform(ws.x_min_m + margin_m, ws.x_max_m - margin_m),
+                           rng.uniform(ws.y_min_m + margin_m, ws.y_max_m - margin_m)])
+        placed.append(xy)
+        z = ws.z_min_m + CUBE_SIZE_M * spec.scale / 2.0 + 0.001
+        out.append(dataclasses.replace(spec, position_m=(float(xy[0]), float(xy[1]), z)))
+    return out
+
+
+def build_scene(scene: Scene, td: TaskDef, specs: list[ObjectSpec]) -> None:
+    """Spawn the objects into an emptied scene (dropping them one by one if the task says so) and settle."""
+    for spec in specs:
+        scene.add_object(spawn_object(scene.client, spec))
+        if td.drop:
+            scene.step(DROP_STEPS)
+    scene.settle(scene.sim.settle_steps)
+
+
+def objects_in_workspace(scene: Scene) -> int:
+    """Objects whose centre is over the workspace (clutter is done when this is 0)."""
+    return sum(scene.in_workspace(b) for b in scene.objects)
+
+
+def stack_height_from_poses(scene: Scene, cube_size_m: float, exclude: int | None = None) -> int:
+    """Ground-truth height of the tallest stack, in cubes: round(highest resting top / cube size).
+
+    exclude: a body to ignore (the cube in the hand). Objects outside the workspace do not count.
+    """
+    tops = [scene.top_z(b) - scene.ws.z_min_m for b in scene.objects if b != exclude and scene.in_workspace(b)]
+    return max([int(np.rint(t / cube_size_m)) for t in tops], default=0)
