@@ -1,0 +1,53 @@
+"""What `romannet info` reports: versions, per-net parameter counts, threads and the resolved config."""
+
+from __future__ import annotations
+
+import platform
+from importlib import metadata
+from typing import Any
+
+from .config import Config
+from .configbase import dumps_toml, to_dict
+
+
+def _version(dist: str) -> str:
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return "not installed"
+
+
+def collect_info(cfg: Config) -> dict[str, Any]:
+    import torch
+
+    from .model import RoManNet, parameter_count
+
+    model = RoManNet(cfg.model)
+    return {
+        "romannet": _version("romannet"),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "versions": {d: _version(d) for d in ("torch", "numpy", "eclipse-zenoh", "pybullet", "mcap", "protobuf")},
+        "torch_threads": torch.get_num_threads(),
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "heightmap_px": [cfg.workspace.height_px, cfg.workspace.width_px],
+        "parameters_per_net": {name: parameter_count(net) for name, net in model.nets.items()},
+        "config": to_dict(cfg),
+    }
+
+
+def format_info(info: dict[str, Any]) -> str:
+    from .config import Config
+    from .configbase import from_dict
+
+    lines = [
+        f"romannet {info['romannet']}  (python {info['python']}, {info['platform']})",
+        "versions: " + ", ".join(f"{k} {v}" for k, v in info["versions"].items()),
+        f"torch threads: {info['torch_threads']}  cpu capability: {info['torch_cpu_capability']}",
+        f"heightmap: {info['heightmap_px'][0]}x{info['heightmap_px'][1]} px",
+        "parameters per net: " + ", ".join(f"{k} {v:,}" for k, v in info["parameters_per_net"].items()),
+        "",
+        "# resolved config",
+        dumps_toml(from_dict(Config, info["config"])),
+    ]
+    return "\n".join(lines)

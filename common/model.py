@@ -1,0 +1,214 @@
+"""RoManNet: three GR-ConvNet variants (PushNet, PickNet, PlaceNet) and their pure helpers.
+
+Each net maps a 4×h×w observation (ImageNet-normalised RGB + scaled depth heightmap) to a pixel-wise Q map
+and a pixel-wise rotation encoded as two channels (cos, sin). One forward pass per net, no input rotations.
+The layout follows GR-ConvNet (Kumra et al. 2020): 9×9 conv, two stride-2 4×4 convs, residual blocks at 4C,
+two stride-2 4×4 transposed convs, a 9×9 conv, then 1×1 heads, so the output is exactly h×w whenever h and
+w are multiples of 4.
+
+Rotation encoding: push is directional, so the net encodes θ as (cos θ, sin θ). Pick and place with an
+antipodal gripper are symmetric under θ → θ+π, so they encode 2θ: (cos 2θ, sin 2θ), and decode to
+θ ∈ (−π/2, π/2].
+
+Weights cross processes as a flat {name: tensor} dict (shipped as safetensors by the learner), validated by
+`load_tensors`; nothing here unpickles.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from .config import PRIMITIVES, ModelConfig
+from .errors import DecodeError
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+DEPTH_OFFSET_M = 0.01  # depth channel = (d − offset) / scale, VPG's normalisation of the height map
+DEPTH_SCALE_M = 0.03
+SYMMETRIC_PRIMITIVES = frozenset({"pick", "place"})
+
+
+class ResidualBlock(nn.Module):
+    """Two 3×3 conv + BN with an identity skip (GR-ConvNet's block: no ReLU after the sum)."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.bn1 = nn.BatchNorm2d(channels)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.bn2 = nn.BatchNorm2d(channels)
+
+    def forward(self, x: Tensor) -> Tensor:
+        y = torch.relu(self.bn1(self.conv1(x)))
+        return x + self.bn2(self.conv2(y))
+
+
+class GRConvNet(nn.Module):
+    """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2, h, w) as cos, sin)."""
+
+    def __init__(self, channels: int = 32, residual_blocks: int = 5, dropout: float = 0.0, in_channels: int = 4):
+        super().__init__()
+        c = channels
+        self.conv1 = nn.Conv2d(in_channels, c, 9, padding=4)
+        self.bn1 = nn.BatchNorm2d(c)
+        self.conv2 = nn.Conv2d(c, 2 * c, 4, stride=2, padding=1)
+        self.bn2 = nn.BatchNorm2d(2 * c)
+        self.conv3 = nn.Conv2d(2 * c, 4 * c, 4, stride=2, padding=1)
+        self.bn3 = nn.BatchNorm2d(4 * c)
+        self.res = nn.Sequential(*[ResidualBlock(4 * c) for _ in range(residual_blocks)])
+        # (n − 1)·2 − 2·1 + 4 = 2n: kernel 4, stride 2, padding 1 doubles exactly, no output_padding needed.
+        self.deconv1 = nn.ConvTranspose2d(4 * c, 2 * c, 4, stride=2, padding=1)
+        self.bn4 = nn.BatchNorm2d(2 * c)
+        self.deconv2 = nn.ConvTranspose2d(2 * c, c, 4, stride=2, padding=1)
+        self.bn5 = nn.BatchNorm2d(c)
+        self.conv6 = nn.Conv2d(c, c, 9, padding=4)
+        self.dropout = nn.Dropout(p=dropout)
+        self.q_head = nn.Conv2d(c, 1, 1)
+        self.rot_head = nn.Conv2d(c, 2, 1)
+
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        h, w = x.shape[-2:]
+        if h % 4 or w % 4:
+            raise ValueError(f"input is {h}x{w}: RoManNet needs h and w to be multiples of 4")
+        x = torch.relu(self.bn1(self.conv1(x)))
+        x = torch.relu(self.bn2(self.conv2(x)))
+        x = torch.relu(self.bn3(self.conv3(x)))
+        x = self.res(x)
+        x = torch.relu(self.bn4(self.deconv1(x)))
+        x = torch.relu(self.bn5(self.deconv2(x)))
+        x = self.dropout(self.conv6(x))
+        return self.q_head(x)[:, 0], self.rot_head(x)
+
+
+class RoManNet(nn.Module):
+    """PushNet, PickNet and PlaceNet under stable state_dict keys `nets.<primitive>.<layer>...`."""
+
+    def __init__(self, cfg: ModelConfig | None = None, seed: int = 0):
+        super().__init__()
+        cfg = cfg or ModelConfig()
+        self.cfg = cfg
+        # Seeded from a forked generator so construction neither depends on nor disturbs global RNG state.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.nets = nn.ModuleDict({
+                p: GRConvNet(cfg.channels, cfg.residual_blocks, cfg.dropout) for p in PRIMITIVES
+            })
+
+    def forward(self, x: Tensor, primitive: str) -> tuple[Tensor, Tensor]:
+        return self.nets[primitive](x)
+
+
+def parameter_count(net: nn.Module) -> int:
+    """Number of trainable parameters (BN running statistics are buffers and not counted)."""
+    return sum(p.numel() for p in net.parameters() if p.requires_grad)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Input preprocessing
+
+
+def preprocess_batch(color_hm: np.ndarray, depth_hm: np.ndarray) -> Tensor:
+    """(B,H,W,3) uint8 colour + (B,H,W) float depth in metres → (B,4,H,W) float32 network input."""
+    if color_hm.dtype != np.uint8 or color_hm.ndim != 4 or color_hm.shape[-1] != 3:
+        raise ValueError(f"color_hm must be uint8 (B,H,W,3); got {color_hm.dtype} {color_hm.shape}")
+    if depth_hm.shape != color_hm.shape[:3]:
+        raise ValueError(f"depth_hm shape {depth_hm.shape} does not match color_hm {color_hm.shape[:3]}")
+    color = torch.from_numpy(np.ascontiguousarray(color_hm)).permute(0, 3, 1, 2).float().div_(255.0)
+    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    color = (color - mean) / std
+    depth = torch.from_numpy(np.asarray(depth_hm, dtype=np.float32)).unsqueeze(1)
+    depth = (depth - DEPTH_OFFSET_M) / DEPTH_SCALE_M
+    return torch.cat([color, depth], dim=1).contiguous()
+
+
+def preprocess(color_hm: np.ndarray, depth_hm: np.ndarray) -> Tensor:
+    """(H,W,3) uint8 colour + (H,W) float depth in metres → (1,4,H,W) float32 network input."""
+    return preprocess_batch(color_hm[None], np.asarray(depth_hm)[None])
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Rotation encoding
+
+
+def _check_primitive(primitive: str) -> None:
+    if primitive not in PRIMITIVES:
+        raise ValueError(f"primitive {primitive!r} is not one of {PRIMITIVES}")
+
+
+def encode_angle(theta, primitive: str):
+    """Rotation target (cos, sin) for gripper yaw θ (radians; float, ndarray or Tensor).
+
+    push: (cos θ, sin θ); pick/place: (cos 2θ, sin 2θ), so θ and θ+π give the same target.
+    """
+    _check_primitive(primitive)
+    k = 2.0 if primitive in SYMMETRIC_PRIMITIVES else 1.0
+    if isinstance(theta, Tensor):
+        return torch.cos(k * theta), torch.sin(k * theta)
+    if isinstance(theta, np.ndarray):
+        return np.cos(k * theta), np.sin(k * theta)
+    return math.cos(k * theta), math.sin(k * theta)
+
+
+def decode_angle(cos, sin, primitive: str):
+    """Gripper yaw from the (cos, sin) channels: push θ ∈ (−π, π]; pick/place θ ∈ (−π/2, π/2].
+
+    Accepts floats, ndarrays or Tensors (the rotation head's output need not be unit length).
+    """
+    _check_primitive(primitive)
+    symmetric = primitive in SYMMETRIC_PRIMITIVES
+    if isinstance(cos, Tensor):
+        a = torch.atan2(sin, cos)
+        a = torch.where(a <= -math.pi, a + 2 * math.pi, a)  # atan2(−0, −1) = −π; fold onto the open end
+        return a / 2 if symmetric else a
+    if isinstance(cos, np.ndarray) or isinstance(sin, np.ndarray):
+        a = np.arctan2(sin, cos)
+        a = np.where(a <= -np.pi, a + 2 * np.pi, a)
+        return a / 2 if symmetric else a
+    a = math.atan2(sin, cos)
+    if a <= -math.pi:
+        a += 2 * math.pi
+    return a / 2 if symmetric else a
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Weights as a flat tensor dict (the learner ships them as safetensors)
+
+
+def state_dict_to_tensors(model: nn.Module) -> dict[str, Tensor]:
+    """Every parameter and buffer as a detached, contiguous CPU tensor, under the state_dict key."""
+    return {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+
+
+def validate_tensors(model: nn.Module, tensors: Mapping[str, Tensor]) -> None:
+    """Raise DecodeError unless `tensors` has exactly the model's keys, shapes and dtypes, all finite."""
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
+    if missing or unexpected:
+        raise DecodeError(f"weights do not match RoManNet: missing keys {missing[:5]}"
+                          f"{'...' if len(missing) > 5 else ''}, unexpected keys {unexpected[:5]}"
+                          f"{'...' if len(unexpected) > 5 else ''}")
+    for key, ref in expected.items():
+        t = tensors[key]
+        if not isinstance(t, Tensor):
+            raise DecodeError(f"weights[{key!r}] is a {type(t).__name__}, not a tensor")
+        if tuple(t.shape) != tuple(ref.shape):
+            raise DecodeError(f"weights[{key!r}] has shape {tuple(t.shape)}, expected {tuple(ref.shape)}")
+        if t.dtype != ref.dtype:
+            raise DecodeError(f"weights[{key!r}] has dtype {t.dtype}, expected {ref.dtype}")
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise DecodeError(f"weights[{key!r}] contains NaN or infinite values")
+        if key.endswith("running_var") and bool((t < 0).any()):
+            raise DecodeError(f"weights[{key!r}] has negative variances")
+
+
+def load_tensors(model: nn.Module, tensors: Mapping[str, Tensor]) -> None:
+    """Validate (see `validate_tensors`) and copy `tensors` into `model` in place."""
+    validate_tensors(model, tensors)
+    model.load_state_dict(dict(tensors), strict=True)

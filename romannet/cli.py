@@ -1,0 +1,202 @@
+"""`romannet <verb>`: the single command-line entry point of the fleet.
+
+Each verb's module is imported only when that verb runs, so `romannet --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from collections.abc import Callable
+
+from romannet import __version__
+from romannet.common.errors import RomannetError
+from romannet.common.logsetup import setup_logging
+
+log = logging.getLogger("romannet.cli")
+
+EXAMPLES = {
+    "info": "romannet info --json --set model.channels=32",
+    "bench": ("romannet bench inference --json\n  romannet bench replay --json --inserts 2000 --repeats 200\n"
+              "  romannet bench sim --json --actions 10 --robots arm,gripper\n"
+              "  romannet bench learner --json --batch-sizes 1,4,8 --repeats 10"),
+    "sim": "romannet sim snapshot --task stacking --seed 3 --out snapshot.png --action pick:112:90:30",
+    "replay": "romannet replay --config configs/default.toml --dir runs/default/replay --listen tcp/127.0.0.1:7447",
+    "learner": ("romannet learner --config configs/default.toml --run-dir runs/default/learner "
+                "--connect tcp/127.0.0.1:7447\n  romannet learner --run-dir runs/default/learner --resume "
+                "--connect tcp/127.0.0.1:7447"),
+}
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE.toml", help="TOML config file (defaults apply to what it omits)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="override one config value, e.g. --set reward.push_weight=0.5 (repeatable)")
+
+
+def _load(args: argparse.Namespace):
+    from romannet.common.config import load_config
+
+    return load_config(args.config, args.overrides)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from romannet.common.info import collect_info, format_info
+
+    info = collect_info(_load(args))
+    sys.stdout.write((json.dumps(info, indent=2) if args.json else format_info(info)) + "\n")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "inference":
+        from romannet.bench.inference import run_inference_benchmark
+
+        result = run_inference_benchmark(repeats=args.repeats, seed=args.seed)
+    elif args.what == "replay":
+        from romannet.bench.replay import run_replay_benchmark
+
+        result = run_replay_benchmark(inserts=args.inserts, repeats=args.repeats, seed=args.seed)
+    elif args.what == "sim":
+        from romannet.bench.sim import run_sim_benchmark
+
+        robots = tuple(r.strip() for r in args.robots.split(",") if r.strip())
+        result = run_sim_benchmark(actions=args.actions, seed=args.seed, robots=robots)
+    elif args.what == "learner":
+        from romannet.bench.learner import run_learner_benchmark
+
+        sizes = tuple(int(b) for b in args.batch_sizes.split(",") if b.strip())
+        result = run_learner_benchmark(batch_sizes=sizes, repeats=args.repeats, seed=args.seed)
+    else:  # argparse choices make this unreachable; kept explicit for the error message
+        raise SystemExit(f"unknown benchmark {args.what!r}")
+    text = json.dumps(result, indent=None if args.json else 2)
+    sys.stdout.write(text + "\n")
+    return 0
+
+
+def parse_action(text: str):
+    """`primitive:row:col:angle_deg` -> Action (for drawing an action on a snapshot)."""
+    import math
+
+    from romannet.common.action import Action
+
+    parts = text.split(":")
+    if len(parts) != 4:
+        raise ValueError(f"--action {text!r} is invalid: use primitive:row:col:angle_deg, e.g. pick:112:90:30")
+    try:
+        return Action(parts[0], int(parts[1]), int(parts[2]), math.radians(float(parts[3])), 0.0)
+    except ValueError as err:
+        raise ValueError(f"--action {text!r} is invalid: {err}") from None
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from romannet.actor.sim.snapshot import write_snapshot
+
+    cfg = _load(args)
+    action = parse_action(args.action) if args.action else None
+    task = args.task or cfg.task.kind
+    out = write_snapshot(task, args.seed if args.seed is not None else cfg.seed, args.out, action=action, sim=cfg.sim)
+    log.info("wrote %s", out)
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from romannet.replay.main import run
+
+    return run(args)
+
+
+def cmd_learner(args: argparse.Namespace) -> int:
+    from romannet.learner.main import run
+
+    return run(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="romannet",
+        description="RoManNet fleet: actors, replay server and learner over Eclipse Zenoh.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n" + "\n".join(f"  {v}" for v in EXAMPLES.values()),
+    )
+    parser.add_argument("--version", action="version", version=f"romannet {__version__}")
+    parser.add_argument("--log-level", default=None, help="DEBUG, INFO (default), WARNING or ERROR")
+    sub = parser.add_subparsers(dest="verb", required=True, metavar="<verb>")
+
+    def verb(name: str, help_text: str, func: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_text, description=help_text,
+                           epilog=f"example:\n  {EXAMPLES[name]}", formatter_class=argparse.RawDescriptionHelpFormatter)
+        p.set_defaults(func=func)
+        return p
+
+    p = verb("info", "version, parameter count per net, torch threads and the resolved config", cmd_info)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_config_args(p)
+
+    p = verb("bench", "run a benchmark and print one JSON object (results go in docs/benchmarks.md)", cmd_bench)
+    p.add_argument("what", choices=["inference", "replay", "sim", "learner"],
+                   help="inference: the actor's decision latency vs baselines; "
+                        "replay: durable inserts/s, sample latency, recovery time over loopback Zenoh; "
+                        "sim: simulator actions/s per task, ms per render, heightmap and primitive; "
+                        "learner: transitions trained/s per batch size vs the naive eager fp32 step")
+    p.add_argument("--json", action="store_true", help="print compact JSON on one line")
+    p.add_argument("--repeats", type=int, default=30, help="timed repeats per measurement (median reported)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--inserts", type=int, default=2000, help="replay: transitions inserted (and recovered)")
+    p.add_argument("--actions", type=int, default=10, help="sim: actions per task and policy")
+    p.add_argument("--robots", default="arm,gripper", help="sim: comma-separated robot modes (arm, gripper)")
+    p.add_argument("--batch-sizes", default="1,4,8", help="learner: comma-separated transitions per update")
+
+    p = verb("sim", "simulator tools: `snapshot` writes the camera image and both heightmaps as one PNG", cmd_sim)
+    p.add_argument("tool", choices=["snapshot"])
+    p.add_argument("--task", choices=["clutter", "arrangement", "stacking"], help="default: the config's task.kind")
+    p.add_argument("--seed", type=int, default=None, help="scene seed (default: the config's seed)")
+    p.add_argument("--out", required=True, metavar="FILE.png")
+    p.add_argument("--action", metavar="PRIM:ROW:COL:DEG", help="draw this action, e.g. pick:112:90:30")
+    _add_config_args(p)
+
+    p = verb("replay", "run the prioritized replay server over Zenoh until SIGTERM/SIGINT", cmd_replay)
+    _add_config_args(p)
+    p.add_argument("--dir", required=True, metavar="DIR", help="where the log segments and snapshots live")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to, e.g. a router tcp/10.0.0.2:7447 (repeatable)")
+    p.add_argument("--zenoh-config", metavar="FILE.json5",
+                   help="Zenoh config file (default: peer mode on loopback, multicast scouting off)")
+
+    p = verb("learner", "train RoManNet from the replay server and publish weights and exploration rates "
+             "until SIGTERM/SIGINT (then checkpoint)", cmd_learner)
+    _add_config_args(p)
+    p.add_argument("--run-dir", required=True, metavar="DIR",
+                   help="checkpoints, metrics.csv, TensorBoard events, learning curves and config.toml")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the checkpoint in --run-dir (its config.toml unless --config is given)")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to: the replay server or a router, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--zenoh-config", metavar="FILE.json5",
+                   help="Zenoh config file (default: peer mode on loopback, multicast scouting off)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        setup_logging(args.log_level)
+        return args.func(args)
+    except RomannetError as err:
+        # Expected failures (bad config, bad input) get one clear line, not a traceback.
+        sys.stderr.write(f"romannet {args.verb}: error: {err}\n")
+        return 2
+    except ValueError as err:
+        sys.stderr.write(f"romannet {args.verb}: error: {err}\n")
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,71 @@
+"""The `romannet` command as a user runs it: real processes, real exit codes, real output."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from romannet.common.config import Config, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def romannet(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
+    env = dict(os.environ, ROMANNET_LOG_LEVEL="WARNING")
+    return subprocess.run([sys.executable, "-m", "romannet.cli", *args], capture_output=True, text=True,
+                          timeout=timeout_s, env=env, cwd=ROOT)
+
+
+def test_help_lists_verbs_with_examples():
+    out = romannet("--help")
+    assert out.returncode == 0
+    assert "info" in out.stdout and "bench" in out.stdout
+    assert "romannet info --json" in out.stdout
+    sub = romannet("bench", "--help")
+    assert sub.returncode == 0 and "example:" in sub.stdout and "romannet bench inference --json" in sub.stdout
+
+
+def test_info_json_reports_parameters_and_resolved_config():
+    out = romannet("info", "--json", "--set", "reward.push_weight=0.4")
+    assert out.returncode == 0, out.stderr
+    info = json.loads(out.stdout)
+    assert set(info["parameters_per_net"]) == {"push", "pick", "place"}
+    for count in info["parameters_per_net"].values():
+        assert 1_700_000 < count < 2_100_000  # "about 1.9 M parameters per net"
+    assert info["config"]["reward"]["push_weight"] == 0.4
+    assert info["heightmap_px"] == [224, 224]
+    assert info["torch_threads"] >= 1
+
+
+def test_info_human_readable_prints_the_resolved_config():
+    out = romannet("info")
+    assert out.returncode == 0, out.stderr
+    assert "parameters per net" in out.stdout and "[reward]" in out.stdout
+
+
+def test_bad_override_is_one_clear_line_and_exit_2():
+    out = romannet("info", "--set", "exploration.beta=2")
+    assert out.returncode == 2
+    assert "exploration.beta" in out.stderr and "[0, 1)" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_missing_config_file_is_a_clear_error(tmp_path):
+    out = romannet("info", "--config", str(tmp_path / "missing.toml"))
+    assert out.returncode == 2 and "does not exist" in out.stderr
+
+
+def test_configs_default_toml_is_the_defaults():
+    # If this fails after changing a default, regenerate configs/default.toml from Config().
+    assert load_config(ROOT / "configs" / "default.toml") == Config()
+
+
+def test_local_zenoh_config_opens_a_real_session():
+    zenoh = pytest.importorskip("zenoh")
+    cfg = zenoh.Config.from_json5((ROOT / "deploy" / "zenoh-local.json5").read_text())
+    assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+    with zenoh.open(cfg) as session:
+        assert str(session.zid())

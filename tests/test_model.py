@@ -1,0 +1,195 @@
+"""RoManNet architecture, preprocessing, rotation encoding and the weights tensor-dict round trip."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load as safetensors_load
+from safetensors.torch import save as safetensors_save
+
+from romannet.common.config import PRIMITIVES, ModelConfig
+from romannet.common.errors import DecodeError
+from romannet.common.model import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    GRConvNet,
+    RoManNet,
+    decode_angle,
+    encode_angle,
+    load_tensors,
+    parameter_count,
+    preprocess,
+    preprocess_batch,
+    state_dict_to_tensors,
+)
+
+PARAMETERS_PER_NET = 1_900_483  # GR-ConvNet with C = 32, 5 residual blocks, 1x1 heads (1 Q + 2 rotation)
+
+
+@pytest.fixture(scope="module")
+def model() -> RoManNet:
+    return RoManNet(seed=0).eval()
+
+
+def test_parameter_count_is_exact_per_net(model):
+    assert set(model.nets) == set(PRIMITIVES)
+    for net in model.nets.values():
+        assert parameter_count(net) == PARAMETERS_PER_NET
+    assert parameter_count(model) == 3 * PARAMETERS_PER_NET
+
+
+def test_parameter_count_follows_config():
+    small = RoManNet(ModelConfig(channels=8, residual_blocks=1))
+    assert parameter_count(small.nets["push"]) < PARAMETERS_PER_NET / 10
+
+
+@pytest.mark.parametrize("h, w", [(64, 64), (64, 96), (224, 224)])
+def test_output_is_exactly_input_size(model, h, w):
+    x = torch.randn(1 if h == 224 else 2, 4, h, w)
+    with torch.inference_mode():
+        q, rot = model.nets["pick"](x)
+    assert q.shape == (x.shape[0], h, w)
+    assert rot.shape == (x.shape[0], 2, h, w)
+    assert torch.isfinite(q).all() and torch.isfinite(rot).all()
+
+
+def test_input_size_not_multiple_of_4_is_rejected(model):
+    with pytest.raises(ValueError, match="multiples of 4"):
+        model.nets["push"](torch.zeros(1, 4, 64, 62))
+
+
+def test_init_is_deterministic_from_seed_and_leaves_global_rng_alone():
+    torch.manual_seed(123)
+    expected_next = torch.rand(1)
+    torch.manual_seed(123)
+    a, b, c = RoManNet(seed=7), RoManNet(seed=7), RoManNet(seed=8)
+    assert torch.equal(torch.rand(1), expected_next)
+    sa, sb, sc = a.state_dict(), b.state_dict(), c.state_dict()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert not torch.equal(sa["nets.push.conv1.weight"], sc["nets.push.conv1.weight"])
+    # the three nets are independently initialised, not copies
+    assert not torch.equal(sa["nets.push.conv1.weight"], sa["nets.pick.conv1.weight"])
+
+
+def test_state_dict_keys_are_stable():
+    keys = list(RoManNet().state_dict())
+    assert keys[0] == "nets.push.conv1.weight"
+    assert "nets.pick.res.4.conv2.weight" in keys
+    assert "nets.place.rot_head.bias" in keys and "nets.place.bn5.running_var" in keys
+    assert len(keys) == 3 * 111
+
+
+def test_dropout_is_configurable():
+    net = RoManNet(ModelConfig(dropout=0.3)).nets["push"]
+    assert isinstance(net, GRConvNet) and net.dropout.p == 0.3
+
+
+def test_preprocess_normalisation_values():
+    color = np.zeros((8, 12, 3), np.uint8)
+    color[2, 3] = (255, 0, 128)
+    depth = np.zeros((8, 12), np.float32)
+    depth[2, 3] = 0.04
+    x = preprocess(color, depth)
+    assert x.shape == (1, 4, 8, 12) and x.dtype == torch.float32
+    px = x[0, :, 2, 3].tolist()
+    expected = [(v / 255 - m) / s for v, m, s in zip((255, 0, 128), IMAGENET_MEAN, IMAGENET_STD, strict=True)]
+    assert px[:3] == pytest.approx(expected, abs=1e-5)
+    assert px[3] == pytest.approx((0.04 - 0.01) / 0.03, abs=1e-5)
+    assert x[0, 3, 0, 0].item() == pytest.approx(-1 / 3, abs=1e-6)  # floor (d = 0)
+    assert x[0, 0, 0, 0].item() == pytest.approx(-0.485 / 0.229, abs=1e-5)  # black
+
+
+def test_preprocess_batch_matches_single():
+    rng = np.random.default_rng(0)
+    color = rng.integers(0, 256, size=(3, 16, 20, 3), dtype=np.uint8)
+    depth = rng.uniform(0, 0.1, size=(3, 16, 20)).astype(np.float32)
+    batch = preprocess_batch(color, depth)
+    assert batch.shape == (3, 4, 16, 20)
+    for i in range(3):
+        assert torch.equal(batch[i:i + 1], preprocess(color[i], depth[i]))
+
+
+def test_preprocess_rejects_bad_inputs():
+    with pytest.raises(ValueError, match="uint8"):
+        preprocess(np.zeros((8, 8, 3), np.float32), np.zeros((8, 8), np.float32))
+    with pytest.raises(ValueError, match="does not match"):
+        preprocess(np.zeros((8, 8, 3), np.uint8), np.zeros((8, 4), np.float32))
+
+
+@pytest.mark.parametrize("primitive", PRIMITIVES)
+def test_angle_round_trip(primitive):
+    half_range = math.pi if primitive == "push" else math.pi / 2
+    thetas = np.linspace(-half_range, half_range, 101)[1:]  # the open end -half_range is excluded
+    c, s = encode_angle(thetas, primitive)
+    back = decode_angle(c, s, primitive)
+    np.testing.assert_allclose(back, thetas, atol=1e-9)
+    # torch and float paths agree with numpy
+    ct, st = encode_angle(torch.from_numpy(thetas), primitive)
+    np.testing.assert_allclose(decode_angle(ct, st, primitive).numpy(), thetas, atol=1e-9)
+    assert decode_angle(*encode_angle(0.3, primitive), primitive) == pytest.approx(0.3)
+
+
+def test_pick_and_place_encode_theta_and_theta_plus_pi_alike():
+    for primitive in ("pick", "place"):
+        for theta in (-1.2, 0.0, 0.4, 1.5):
+            a = encode_angle(theta, primitive)
+            b = encode_angle(theta + math.pi, primitive)
+            assert a == pytest.approx(b, abs=1e-12)
+            assert decode_angle(*b, primitive) == pytest.approx(theta)
+    # push is directional: opposite directions have opposite encodings
+    assert encode_angle(0.4 + math.pi, "push")[0] == pytest.approx(-math.cos(0.4))
+
+
+def test_decode_ranges_and_boundaries():
+    assert decode_angle(-1.0, -0.0, "push") == pytest.approx(math.pi)  # atan2(-0, -1) = -pi folds to +pi
+    assert decode_angle(-1.0, -0.0, "pick") == pytest.approx(math.pi / 2)
+    arr = decode_angle(np.array([-1.0], np.float32), np.array([-0.0], np.float32), "place")
+    assert arr.dtype == np.float32 and arr[0] == pytest.approx(math.pi / 2)
+    rng = np.random.default_rng(0)
+    c, s = rng.normal(size=1000) * 3, rng.normal(size=1000) * 3  # the head's output need not be unit length
+    push, pick = decode_angle(c, s, "push"), decode_angle(c, s, "pick")
+    assert np.all((push > -math.pi) & (push <= math.pi))
+    assert np.all((pick > -math.pi / 2) & (pick <= math.pi / 2))
+    with pytest.raises(ValueError):
+        encode_angle(0.0, "throw")
+
+
+def test_weights_round_trip_through_safetensors(model):
+    other = RoManNet(seed=99).eval()
+    tensors = safetensors_load(safetensors_save(state_dict_to_tensors(model)))
+    load_tensors(other, tensors)
+    x = torch.randn(1, 4, 32, 32)
+    with torch.inference_mode():
+        for p in PRIMITIVES:
+            assert torch.equal(other.nets[p](x)[0], model.nets[p](x)[0])
+
+
+def _mutated(tensors, key, value):
+    out = dict(tensors)
+    if value is None:
+        del out[key]
+    else:
+        out[key] = value
+    return out
+
+
+@pytest.mark.parametrize("case", ["missing", "unexpected", "shape", "dtype", "nan", "negative_var", "not_tensor"])
+def test_mismatched_weights_raise_decode_error(model, case):
+    tensors = state_dict_to_tensors(model)
+    key = "nets.pick.conv3.weight"
+    bad = {
+        "missing": lambda: _mutated(tensors, key, None),
+        "unexpected": lambda: _mutated(tensors, "nets.throw.conv1.weight", torch.zeros(1)),
+        "shape": lambda: _mutated(tensors, key, torch.zeros(3, 3)),
+        "dtype": lambda: _mutated(tensors, key, tensors[key].double()),
+        "nan": lambda: _mutated(tensors, key, tensors[key].clone().fill_(float("nan"))),
+        "negative_var": lambda: _mutated(tensors, "nets.push.bn1.running_var", -torch.ones(32)),
+        "not_tensor": lambda: _mutated(tensors, key, np.zeros(tensors[key].shape, np.float32)),
+    }[case]()
+    target = RoManNet(seed=5)
+    before = state_dict_to_tensors(target)
+    with pytest.raises(DecodeError):
+        load_tensors(target, bad)
+    after = state_dict_to_tensors(target)
+    assert all(torch.equal(before[k], after[k]) for k in before)  # nothing half-loaded

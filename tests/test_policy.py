@@ -1,0 +1,221 @@
+"""The decision path: which nets run, argmax/holding behaviour, and the fast engine against fp32."""
+
+import numpy as np
+import pytest
+import torch
+
+from romannet.bench.inference import synthetic_scene
+from romannet.common import policy
+from romannet.common.config import ExplorationConfig, ModelConfig
+from romannet.common.errors import DecodeError
+from romannet.common.model import RoManNet, preprocess, state_dict_to_tensors
+from romannet.common.policy import (
+    FastNet,
+    InferenceEngine,
+    PolicyMaps,
+    decide,
+    fused_ops_available,
+    nets_to_run,
+    reference_maps,
+    resolve_precision,
+)
+
+H, W = 64, 64
+EXPLORATION = ExplorationConfig()
+
+
+@pytest.fixture(scope="module")
+def model() -> RoManNet:
+    return RoManNet(seed=0).eval()
+
+
+@pytest.fixture(scope="module")
+def engine(model) -> InferenceEngine:
+    eng = InferenceEngine(model)  # precision "auto": bf16 where native, else fp32
+    yield eng
+    eng.close()
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    rng = np.random.default_rng(3)
+    return [synthetic_scene(rng, H, W) for _ in range(12)]
+
+
+def _count_forward_calls(model: RoManNet) -> tuple[dict[str, int], list]:
+    calls = {p: 0 for p in model.nets}
+    handles = [net.register_forward_hook(lambda *_, p=p: calls.__setitem__(p, calls[p] + 1))
+               for p, net in model.nets.items()]
+    return calls, handles
+
+
+class _Counting:
+    def __init__(self, fn, calls, name):
+        self.fn, self.calls, self.name = fn, calls, name
+
+    def __call__(self, x):
+        self.calls[self.name] += 1
+        return self.fn(x)
+
+
+@pytest.mark.parametrize("holding, primitives, expected", [
+    (False, ("push", "pick"), ("push", "pick")),
+    (False, ("push", "pick", "place"), ("push", "pick")),
+    (False, ("pick", "place"), ("pick",)),
+    (True, ("push", "pick", "place"), ("place",)),
+    (True, ("pick", "place"), ("place",)),
+])
+def test_nets_to_run(holding, primitives, expected):
+    assert nets_to_run(holding, primitives) == expected
+
+
+def test_nets_to_run_rejects_impossible_state():
+    with pytest.raises(ValueError, match="holding"):
+        nets_to_run(True, ("push", "pick"))
+
+
+@pytest.mark.parametrize("holding, primitives, expected", [
+    (False, ("push", "pick", "place"), {"push": 1, "pick": 1, "place": 0}),
+    (False, ("pick", "place"), {"push": 0, "pick": 1, "place": 0}),
+    (True, ("push", "pick", "place"), {"push": 0, "pick": 0, "place": 1}),
+])
+def test_reference_decide_runs_only_allowed_nets(model, scenes, holding, primitives, expected):
+    calls, handles = _count_forward_calls(model)
+    try:
+        action, maps = decide(model, *scenes[0], holding, 0.0, np.random.default_rng(0), primitives, EXPLORATION,
+                              return_maps=True)
+    finally:
+        for h in handles:
+            h.remove()
+    assert calls == expected
+    assert set(maps.q) == set(maps.angle) == {p for p, n in expected.items() if n}
+    assert action.primitive in maps.q
+
+
+@pytest.mark.parametrize("holding, primitives, expected", [
+    (False, ("push", "pick"), {"push": 1, "pick": 1, "place": 0}),
+    (False, ("pick",), {"push": 0, "pick": 1, "place": 0}),
+    (True, ("pick", "place"), {"push": 0, "pick": 0, "place": 1}),
+])
+def test_engine_decide_runs_only_allowed_nets(model, scenes, holding, primitives, expected, monkeypatch):
+    eng = InferenceEngine(model)
+    calls = {p: 0 for p in eng.nets}
+    for p in list(eng.nets):
+        monkeypatch.setitem(eng.nets, p, _Counting(eng.nets[p], calls, p))
+    try:
+        decide(eng, *scenes[1], holding, 0.0, np.random.default_rng(0), primitives, EXPLORATION)
+    finally:
+        eng.close()
+    assert calls == expected
+
+
+def test_holding_gives_place_action(engine, scenes):
+    for color, depth in scenes[:3]:
+        action = decide(engine, color, depth, True, 0.0, np.random.default_rng(0), ("push", "pick", "place"),
+                        EXPLORATION)
+        assert action.primitive == "place" and not action.explored
+
+
+def test_explore_rate_zero_is_argmax_of_the_maps(engine, scenes):
+    for color, depth in scenes[:4]:
+        action, maps = decide(engine, color, depth, False, 0.0, np.random.default_rng(1), ("push", "pick"),
+                              EXPLORATION, return_maps=True)
+        assert isinstance(maps, PolicyMaps)
+        stacked = np.stack([maps.q["push"], maps.q["pick"]])
+        prim_idx, row, col = np.unravel_index(np.argmax(stacked), stacked.shape)
+        assert (action.primitive, action.row, action.col) == (("push", "pick")[prim_idx], row, col)
+        assert action.q_value == pytest.approx(float(stacked.max()))
+        assert action.angle_rad == pytest.approx(float(maps.angle[action.primitive][row, col]))
+        assert not action.explored
+        assert maps.q["push"].shape == (H, W) and maps.q["push"].dtype == np.float32
+
+
+def test_explore_rate_one_explores(engine, scenes):
+    action = decide(engine, *scenes[0], False, 1.0, np.random.default_rng(2), ("push", "pick"), EXPLORATION)
+    assert action.explored and action.primitive in ("push", "pick")
+
+
+def test_angle_maps_are_in_range(engine, scenes):
+    _, maps = decide(engine, *scenes[0], False, 0.0, np.random.default_rng(0), ("push", "pick"), EXPLORATION,
+                     return_maps=True)
+    assert np.all(np.abs(maps.angle["push"]) <= np.pi + 1e-6)
+    assert np.all(np.abs(maps.angle["pick"]) <= np.pi / 2 + 1e-6)
+
+
+def test_fast_path_agrees_with_fp32_on_fixed_set(model, engine, scenes):
+    """Same primitive and pixel as the fp32 reference, and Q maps close (bf16 where the CPU has it)."""
+    for color, depth in scenes:
+        rng = np.random.default_rng(0)
+        fast, fast_maps = decide(engine, color, depth, False, 0.0, rng, ("push", "pick"), EXPLORATION, True)
+        ref, ref_maps = decide(model, color, depth, False, 0.0, rng, ("push", "pick"), EXPLORATION, True)
+        assert (fast.primitive, fast.row, fast.col) == (ref.primitive, ref.row, ref.col)
+        assert fast.angle_rad == pytest.approx(ref.angle_rad, abs=0.02)
+        for p in ("push", "pick"):
+            assert np.abs(fast_maps.q[p] - ref_maps.q[p]).max() < 1e-3
+
+
+def test_fp32_engine_matches_reference_closely(model, scenes):
+    eng = InferenceEngine(model, ModelConfig(precision="fp32"))
+    try:
+        fast = eng.infer(*scenes[0], ("push", "pick", "place"))
+    finally:
+        eng.close()
+    ref = reference_maps(model, *scenes[0], ("push", "pick", "place"))
+    for p in ref.q:
+        np.testing.assert_allclose(fast.q[p], ref.q[p], atol=2e-5)
+
+
+@pytest.mark.skipif(not fused_ops_available(), reason="this PyTorch build lacks oneDNN's fused ops")
+def test_fused_and_plain_aten_layers_compute_the_same(model, scenes):
+    x = preprocess(*scenes[0])
+    with torch.inference_mode():
+        fused = FastNet(model.nets["pick"], "fp32", fused=True)(x)
+        plain = FastNet(model.nets["pick"], "fp32", fused=False)(x)
+        # a second input size re-packs the weights
+        small = preprocess(*synthetic_scene(np.random.default_rng(0), 32, 48))
+        fused_small = FastNet(model.nets["pick"], "fp32", fused=True)
+        fused_small(x)
+        np.testing.assert_allclose(fused_small(small).numpy(),
+                                   FastNet(model.nets["pick"], "fp32", fused=False)(small).numpy(), atol=2e-5)
+    np.testing.assert_allclose(fused.numpy(), plain.numpy(), atol=2e-5)
+
+
+def test_parallel_and_sequential_engines_agree(model, scenes):
+    par, seq = InferenceEngine(model, parallel_nets=True), InferenceEngine(model, parallel_nets=False)
+    try:
+        a, b = par.infer(*scenes[2], ("push", "pick")), seq.infer(*scenes[2], ("push", "pick"))
+    finally:
+        par.close()
+        seq.close()
+    for p in ("push", "pick"):
+        np.testing.assert_allclose(a.q[p], b.q[p], atol=1e-3)
+
+
+def test_engine_load_state_swaps_weights(scenes):
+    source, target = RoManNet(seed=1).eval(), RoManNet(seed=2).eval()
+    eng = InferenceEngine(target, ModelConfig(precision="fp32"))
+    try:
+        before = eng.infer(*scenes[0], ("pick",)).q["pick"]
+        eng.load_state(state_dict_to_tensors(source))
+        after = eng.infer(*scenes[0], ("pick",)).q["pick"]
+        bad = state_dict_to_tensors(source)
+        bad["nets.pick.conv1.weight"] = torch.zeros(2, 2)
+        with pytest.raises(DecodeError):
+            eng.load_state(bad)
+        still = eng.infer(*scenes[0], ("pick",)).q["pick"]
+    finally:
+        eng.close()
+    expected = reference_maps(source, *scenes[0], ("pick",)).q["pick"]
+    assert not np.allclose(before, expected, atol=1e-3)
+    np.testing.assert_allclose(after, expected, atol=2e-5)
+    np.testing.assert_array_equal(still, after)
+
+
+def test_precision_resolution(monkeypatch):
+    assert resolve_precision("fp32") == "fp32"
+    monkeypatch.setattr(policy, "cpu_bf16_flags", lambda: ())
+    assert resolve_precision("auto") == "fp32"
+    monkeypatch.setattr(policy, "cpu_bf16_flags", lambda: ("amx_bf16",))
+    assert resolve_precision("auto") == ("bf16" if torch.backends.mkldnn.is_available() else "fp32")
+    with pytest.raises(ValueError):
+        resolve_precision("int8")
