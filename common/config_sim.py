@@ -36,6 +36,10 @@ class SimConfig:
     time_step_s: float = 1.0 / 240.0
     substeps: int = 0  # PyBullet numSubSteps (0 = none); raise for stiffer contacts at a cost in speed
     solver_iterations: int = 50
+    # The solver stops iterating once every constraint's velocity error is below this (m/s). PyBullet's
+    # 1e-7 runs all 50 iterations every step; 1e-4 (0.4 um of drift per step) made a step ~3x cheaper with
+    # the same oracle outcomes (bench/sim.py; docs/benchmarks.md).
+    solver_residual_threshold: float = 1e-4
     # --- camera (intrinsics in CameraConfig); pose as PyBullet's computeViewMatrix(eye, target, up)
     camera_eye_m: tuple[float, float, float] = (0.5, 0.0, 0.75)
     camera_target_m: tuple[float, float, float] = (0.5, 0.0, 0.0)
@@ -75,6 +79,8 @@ class SimConfig:
         require(0 <= self.substeps <= 20, "sim.substeps", self.substeps, "must be 0..20")
         require(1 <= self.solver_iterations <= 1000, "sim.solver_iterations", self.solver_iterations,
                 "must be 1..1000")
+        require(0.0 < self.solver_residual_threshold <= 1e-2, "sim.solver_residual_threshold",
+                self.solver_residual_threshold, "must be in (0, 0.01] m/s (PyBullet's default: 1e-7)")
         require(all(math.isfinite(v) for v in (*self.camera_eye_m, *self.camera_target_m, *self.camera_up)),
                 "sim.camera_eye_m", self.camera_eye_m, "camera eye, target and up must be finite")
         require(self.camera_eye_m[2] > 0.3, "sim.camera_eye_m", self.camera_eye_m,

@@ -61,3 +61,28 @@ def test_snapshot_writes_camera_and_both_heightmaps(tmp_path):
     out = write_snapshot("stacking", 0, tmp_path / "snap.png", Action("pick", 100, 120, 0.4, 1.0), sim=SMALL)
     image = cv2.imread(str(out))
     assert image is not None and image.shape[0] == 448 and image.shape[1] > 3 * 448
+
+
+def _final_poses(robot: str, seed: int) -> np.ndarray:
+    sim = SimConfig(object_set="cubes", num_objects=2, settle_steps=120, max_steps=6, robot=robot)
+    with SimEnv(task=TaskConfig(kind="clutter"), sim=sim) as env:
+        env.reset(seed)
+        for action in (Action("push", 112, 60, 0.3, 1.0), oracle_action(env)):
+            env.step(action)
+        return np.concatenate([np.concatenate(env.scene.pose(b)) for b in env.scene.objects] + [env.obs.depth_hm.ravel()])
+
+
+def test_gripper_mode_is_deterministic_too():
+    a, b = _final_poses("gripper", 5), _final_poses("gripper", 5)
+    np.testing.assert_array_equal(a, b)
+
+
+def test_an_explosion_during_a_primitive_ends_it_at_once():
+    with SimEnv(task=TaskConfig(kind="clutter"), sim=SMALL) as env:
+        env.reset(2)
+        body, c = env.scene.objects[0], env.scene.client
+        p.changeDynamics(body, -1, activationState=p.ACTIVATION_STATE_WAKE_UP, physicsClientId=c)
+        p.resetBaseVelocity(body, (0.0, 0.0, 30.0), physicsClientId=c)  # flung upward mid-primitive
+        result = env.step(Action("pick", 100, 100, 0.0, 1.0))
+        assert result.done and result.done_reason == "unstable" and result.detail == "unstable"
+        assert result.info["physics_steps"] <= 24  # stopped at the first check, not at the end of the step

@@ -34,7 +34,7 @@ from romannet.common.stack import stack_height
 from .gripper import FloatingGripper
 from .primitives import PrimitiveResult, Primitives
 from .robot import Hand, PandaArm
-from .scene import Scene
+from .scene import Frame, Scene
 from .tasks import build_scene, object_specs, objects_in_workspace, stack_height_from_poses, task_def
 
 log = logging.getLogger(__name__)
@@ -82,6 +82,7 @@ class SimEnv:
             self.arm.close()
         robot_cls = PandaArm if self.sim.robot == "arm" else FloatingGripper
         self.arm = robot_cls(self.scene.client, self.sim)
+        self.scene.robot_id = self.arm.body_id
         self.prims = Primitives(self.scene, self.arm, self.sim)
         build_scene(self.scene, self.task_def, object_specs(self.task_def, self.sim, self.ws, self.rng))
         self.holding, self.held_body, self.hang_m = False, None, 0.0
@@ -107,9 +108,14 @@ class SimEnv:
         self.close()
 
     # ----------------------------------------------------------------------------------- observation
+    def render(self) -> Frame:
+        """One camera frame of the current scene (depth noise drawn from the episode's rng, if configured)."""
+        # The robot is left out of the render when it cannot be seen (at home): same image, ~25 ms less.
+        return self.scene.render(self.rng, cull=(self.arm.body_id,) if self.arm is not None else ())
+
     def _observe(self) -> Observation:
         t0 = time.perf_counter()
-        frame = self.scene.render(self.rng)
+        frame = self.render()
         color_hm, depth_hm = self.scene.heightmaps(frame)
         self.last_observe_s = time.perf_counter() - t0  # wall-clock, for the benchmark only
         return Observation(color_hm, depth_hm, self.holding, frame.color, frame.depth_m)
@@ -154,7 +160,7 @@ class SimEnv:
                          PUSH_MIN_HEIGHT_M)
             return self.prims.push(x, y, z_push + self.ws.z_min_m, action.angle_rad)
         if action.primitive == "pick":
-            return self.prims.pick(x, y, z, action.angle_rad)
+            return self.prims.pick(x, y, z, action.angle_rad, remove_held=self.task_def.remove_picked)
         if self.prims.held_body() != self.held_body:  # the object slipped out on the way
             return PrimitiveResult(False, "dropped", 0)
         z_place = self._patch_max(action.row, action.col, PLACE_PATCH_RADIUS_M) + self.ws.z_min_m
@@ -171,17 +177,13 @@ class SimEnv:
         success, detail = result.success, result.reason
         if action.primitive == "pick" and not reason:
             self.picks += 1
-            if success and self.task_def.remove_picked:
-                assert result.held_body is not None
-                self.scene.remove_object(result.held_body)
-                self.arm.set_fingers(closed=False)
-            elif success:
+            if success and not self.task_def.remove_picked:  # (clutter: the pick removed it already)
                 self.holding, self.held_body, self.hang_m = True, result.held_body, result.hang_m
             self.successful_picks += int(success)
         if action.primitive == "place" and not reason:
             self.holding, self.held_body, self.hang_m = False, None, 0.0
 
-        unstable = self.scene.instability()
+        unstable = result.unstable or self.scene.instability()
         self.obs = self._observe()
         if action.primitive == "place" and success:
             success = self.stack_height_hm(self.obs.depth_hm) > self.stack_height_hm(hm_before)

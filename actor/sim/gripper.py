@@ -76,7 +76,7 @@ class FloatingGripper(Hand):
                            maxForce=CONSTRAINT_FORCE_N, physicsClientId=self.client)
 
     def reset(self) -> None:
-        """Teleport home with the gripper open (episode start only)."""
+        """Teleport home with the gripper open: episode start, and an empty hand's way home (primitives.py)."""
         home = np.array(HOME_TIP_M)
         p.resetBasePositionAndOrientation(self.body_id, self._base_target(home), _top_down(0.0),
                                           physicsClientId=self.client)

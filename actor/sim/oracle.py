@@ -19,6 +19,10 @@ from .scene import wrap_half_pi
 
 MAX_GRASP_WIDTH_M = 0.07  # the Panda opens 8 cm; leave a margin
 CROWDED_GAP_M = 0.025  # a neighbour closer than this (surface to surface, roughly) blocks the fingers
+# The Panda's fingers squeeze with their lowest centimetre: there must be material at these heights above
+# the fingertips (an arch grasped over its hole has material only higher up, and slips: measured).
+PAD_HEIGHTS_M = (0.003, 0.008)
+FREE_FLOOR_M = 0.01  # a push starts where the heightmap is below this (else it rides over an object)
 
 
 def _footprint(env: SimEnv, body: int) -> tuple[float, float, float, float]:
@@ -66,6 +70,60 @@ def _nearest_gap(env: SimEnv, body: int, bodies: list[int]) -> tuple[float, np.n
     return best, best_pos
 
 
+def _solid_between_fingers(env: SimEnv, body: int, angle_rad: float) -> bool:
+    """Would fingers closing along angle_rad over the body's centre squeeze material of the body?
+
+    Rays along the closing axis, from just outside the body toward its centre, at the pads' height when the
+    fingertips are pick_depth_m below the top: an arch grasped across its thickness over the middle closes
+    on its hole (both rays miss), across its span on its legs (both hit).
+    """
+    pos = env.scene.pose(body)[0]
+    z_tip = max(env.scene.top_z(body) - env.sim.pick_depth_m, env.sim.fingertip_clearance_m)
+    reach = float(np.linalg.norm(env.scene.local_half_extents_m[body])) + 0.01
+    d = np.array([math.cos(angle_rad), math.sin(angle_rad), 0.0])
+    starts, ends = [], []
+    for dz in PAD_HEIGHTS_M:
+        centre = np.array([pos[0], pos[1], z_tip + dz])
+        starts += [(centre - reach * d).tolist(), (centre + reach * d).tolist()]
+        ends += [centre.tolist(), centre.tolist()]
+    hits = p.rayTestBatch(starts, ends, physicsClientId=env.scene.client)
+    return all(h[0] == body for h in hits)
+
+
+def _grasp_angle(env: SimEnv, body: int) -> float | None:
+    """Closing angle for a top-down grasp of body: across its narrow side, else across its wide side when
+    that fits the gripper and the narrow one would close on nothing; None if neither does."""
+    narrow, angle, wide, wide_angle = _footprint(env, body)
+    for width, a in ((narrow, angle), (wide, wide_angle)):
+        if width <= MAX_GRASP_WIDTH_M and _solid_between_fingers(env, body, a):
+            return wrap_half_pi(a)
+    return wrap_half_pi(angle) if narrow <= MAX_GRASP_WIDTH_M else None
+
+
+def _push_actions(env: SimEnv, body: int, bodies: list[int]) -> list[Action]:
+    """Pushes moving body sideways out of its crowd, best first, each from free floor (a push starting over
+    a neighbour would slide over its top): across the line to its nearest neighbour, toward the workspace
+    centre first, then into that neighbour from the far side."""
+    pos = env.scene.pose(body)[0]
+    _, neighbour = _nearest_gap(env, body, bodies)
+    away = pos[:2] - neighbour[:2]
+    away_angle = math.atan2(away[1], away[0]) if np.linalg.norm(away) > 1e-6 else 0.0
+    centre = np.array([(env.ws.x_min_m + env.ws.x_max_m) / 2, (env.ws.y_min_m + env.ws.y_max_m) / 2])
+    across = [away_angle + math.pi / 2, away_angle - math.pi / 2]
+    across.sort(key=lambda a: -np.dot(centre - pos[:2], [math.cos(a), math.sin(a)]))
+    pushes = []
+    for angle in (*across, away_angle + math.pi):
+        d = np.array([math.cos(angle), math.sin(angle)])
+        start = pos[:2] - (max(env.scene.local_half_extents_m[body][:2]) + 0.03) * d
+        px = _pixel(env, start)
+        if px is None or not (env.ws.x_min_m <= start[0] <= env.ws.x_max_m
+                              and env.ws.y_min_m <= start[1] <= env.ws.y_max_m):
+            continue
+        if env._patch_max(px[0], px[1], 0.012) < FREE_FLOOR_M:
+            pushes.append(Action("push", px[0], px[1], float(angle), 1.0))
+    return pushes
+
+
 def clutter_action(env: SimEnv) -> Action:
     """Pick the most isolated graspable object; if every object is crowded, push one out of the crowd."""
     bodies = [b for b in env.scene.objects if env.scene.in_workspace(b)]
@@ -74,24 +132,18 @@ def clutter_action(env: SimEnv) -> Action:
     # Highest first (it cannot be buried), then the most isolated.
     ranked = sorted(bodies, key=lambda b: (-round(env.scene.top_z(b), 2), -_nearest_gap(env, b, bodies)[0]))
     for body in ranked:
-        narrow, angle, _, _ = _footprint(env, body)
+        angle = _grasp_angle(env, body)
         gap, _ = _nearest_gap(env, body, bodies)
         clear = gap - max(env.scene.local_half_extents_m[body]) > CROWDED_GAP_M + 0.03
-        if narrow <= MAX_GRASP_WIDTH_M and (clear or "push" not in env.primitives):
-            return _action(env, "pick", env.scene.pose(body)[0][:2], wrap_half_pi(angle))
-    # Every object is crowded: push the top-ranked one sideways, across the line to its nearest neighbour,
-    # starting from free floor beside it (a push starting over the neighbour would slide over its top).
+        if angle is not None and (clear or "push" not in env.primitives):
+            return _action(env, "pick", env.scene.pose(body)[0][:2], angle)
+    # Every object is crowded: push one out of its crowd. After failures, the next candidate: the same push
+    # would fail again (e.g. a start the arm cannot reach).
+    pushes = [a for body in ranked for a in _push_actions(env, body, bodies)]
+    if pushes:
+        return pushes[env.consecutive_failures % len(pushes)]
     body = ranked[0]
-    pos = env.scene.pose(body)[0]
-    _, neighbour = _nearest_gap(env, body, bodies)
-    away = pos[:2] - neighbour[:2]
-    across = math.atan2(away[1], away[0]) + math.pi / 2 if np.linalg.norm(away) > 1e-6 else 0.0
-    centre = np.array([(env.ws.x_min_m + env.ws.x_max_m) / 2, (env.ws.y_min_m + env.ws.y_max_m) / 2])
-    if np.dot(centre - pos[:2], [math.cos(across), math.sin(across)]) < 0:
-        across += math.pi  # push toward the middle of the workspace, not out of it
-    start = pos[:2] - (max(env.scene.local_half_extents_m[body][:2]) + 0.03) * np.array(
-        [math.cos(across), math.sin(across)])
-    return _action(env, "push", start, across)
+    return _action(env, "pick", env.scene.pose(body)[0][:2], _grasp_angle(env, body) or 0.0)
 
 
 def stacking_action(env: SimEnv) -> Action:

@@ -5,6 +5,10 @@ heights (see robot.py). `angle_rad` follows common.action: push direction for a 
 for pick/place. A primitive never raises for an unreachable pose, a blocked path or an empty grasp: it
 returns a PrimitiveResult with success False and a reason, and always ends with the arm back home (out of
 the camera's view) when the step budget allows.
+
+Going home: with an empty hand that touches no object the arm is put back at home directly (no physics
+steps): that free-space move above the scene can change nothing and carries no information, and it was
+about a third of every primitive's steps. While anything is held or touched, it drives home physically.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import pybullet as p
 
 from romannet.common.config_sim import SimConfig
 
@@ -28,6 +33,7 @@ SLOW_ZONE_M = 0.04
 LIFT_SPEED_MPS = 0.6
 PUSH_SPEED_MPS = 0.25
 PLACE_GAP_M = 0.008  # the held object's bottom stops this far above the pose before the fingers open
+FINISH_SETTLE_STEPS = 120  # after going home: what the primitive disturbed comes to rest (and sleeps)
 
 
 @dataclass(frozen=True)
@@ -40,6 +46,7 @@ class PrimitiveResult:
     held_body: int | None = None  # pick: the body held after the lift
     hang_m: float = 0.0  # pick: how far the held body's bottom hangs below the fingertips
     moved_m: float = 0.0  # push: largest displacement of any object
+    unstable: str = ""  # why the simulation went unstable during the primitive ("" = it did not)
 
 
 class Primitives:
@@ -49,15 +56,31 @@ class Primitives:
         self.scene, self.arm, self.sim = scene, arm, sim
 
     def _budget(self) -> StepBudget:
-        return StepBudget(self.scene.client, self.sim.max_primitive_steps)
+        # Watched during the primitive: an exploding contact ends it at once; resting objects go to sleep.
+        return StepBudget(self.scene.client, self.sim.max_primitive_steps, watch=self.scene.watch)
 
     def _finish(self, budget: StepBudget, success: bool, reason: str, **extra) -> PrimitiveResult:
-        """Return home (the camera must see the scene unoccluded) and account the steps."""
-        self.arm.go_home(budget)
+        """Return home (the camera must see the scene unoccluded), let the scene come to rest, count steps."""
+        if budget.unstable:
+            pass  # leave everything as it is: the episode ends
+        elif self._touching_objects():
+            self.arm.go_home(budget)
+        else:
+            self.arm.reset()
+        if budget.unstable:
+            success, reason = False, "unstable"
+        else:
+            self.scene.settle(FINISH_SETTLE_STEPS)
         self.scene.steps_total += budget.used
         if reason:
             log.debug("primitive failed: %s", reason)
-        return PrimitiveResult(success, reason, budget.used, **extra)
+        return PrimitiveResult(success, reason, budget.used, unstable=budget.unstable, **extra)
+
+    def _touching_objects(self) -> bool:
+        """Does the robot touch any object (at the last physics step)?"""
+        objects = set(self.scene.objects)
+        return any(c[2] in objects for c in p.getContactPoints(bodyA=self.arm.body_id,
+                                                               physicsClientId=self.scene.client))
 
     def _approach(self, x_m: float, y_m: float, z_m: float, angle_rad: float, budget: StepBudget) -> bool:
         err = self.arm.move_tips(np.array([x_m, y_m, z_m]), angle_rad, budget, tol_m=APPROACH_TOL_M / 2)
@@ -95,10 +118,13 @@ class Primitives:
         return self._finish(budget, ok, "" if ok else "nothing_moved", moved_m=moved)
 
     # ------------------------------------------------------------------------------------------ pick
-    def pick(self, x_m: float, y_m: float, z_m: float, angle_rad: float) -> PrimitiveResult:
+    def pick(self, x_m: float, y_m: float, z_m: float, angle_rad: float, remove_held: bool = False
+             ) -> PrimitiveResult:
         """Top-down grasp: fingertips pick_depth_m below the pose z (not below the table), close, lift.
 
         Success = after the lift the finger gap is not closed AND both fingers touch the same object.
+        remove_held: take a successfully picked object out of the world right after the lift, before the
+        way home (clutter removal; held_body then names the removed body).
         """
         budget = self._budget()
         self.arm.set_fingers(closed=False)
@@ -115,6 +141,9 @@ class Primitives:
             self.arm.set_fingers(closed=False)
             return self._finish(budget, False, "nothing_grasped")
         hang = float(self.arm.tip_position()[2] - self.scene.bottom_z(held))
+        if remove_held:
+            self.scene.remove_object(held)
+            self.arm.set_fingers(closed=False)
         return self._finish(budget, True, "", held_body=held, hang_m=hang)
 
     def held_body(self) -> int | None:

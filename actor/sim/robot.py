@@ -174,7 +174,8 @@ class PandaArm(Hand):
 
     # ------------------------------------------------------------------------------------------ state
     def reset(self) -> None:
-        """Teleport to the home pose with the gripper open (episode start only: no physics involved)."""
+        """Teleport to the home pose with the gripper open (no physics): episode start, and the way home of
+        an empty hand that touches nothing (primitives.py says why)."""
         for j, q in zip(ARM_JOINTS, HOME_Q, strict=True):
             p.resetJointState(self.body_id, j, q, physicsClientId=self.client)
         for j in FINGER_JOINTS:

@@ -1,5 +1,9 @@
 """One PyBullet world per environment: client lifecycle, table, objects, camera -> heightmaps, stability.
 
+Resting objects are put to sleep explicitly once settled (`settle`): Bullet would wait 2 s of simulated
+time before deactivating them, longer than a primitive, and a scene of ten awake objects costs ~10x the
+physics time of a sleeping one. A sleeping object wakes on any contact with a moving body.
+
 Frames: world = robot base frame (Panda base at the origin, facing +x); the table top is z = 0, the
 workspace floor. Every PyBullet call passes `physicsClientId`, so several scenes live in one process
 without touching PyBullet's global client.
@@ -9,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pybullet as p
@@ -17,7 +21,9 @@ import pybullet_data
 
 from romannet.common.config import CameraConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
-from romannet.common.heightmap import get_heightmaps, look_at, vertical_fov_deg, zbuffer_to_depth
+from romannet.common.heightmap import get_heightmaps
+
+from .camera import Camera, Frame
 
 log = logging.getLogger(__name__)
 
@@ -25,34 +31,38 @@ TABLE_THICKNESS_M = 0.05
 TABLE_RGBA = (0.45, 0.45, 0.45, 1.0)
 # Below this the object has fallen off the table (the table top is z = 0).
 FELL_OFF_Z_M = -0.03
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One camera capture: RGB uint8 (H, W, 3), metric depth float32 (H, W) along the camera z axis."""
-
-    color: np.ndarray
-    depth_m: np.ndarray
+REST_SPEED_MPS = 0.005  # an object slower than this and REST_ANGULAR_SPEED_RADPS is at rest
+REST_ANGULAR_SPEED_RADPS = 0.1
+__all__ = ["Frame", "Scene", "StepBudget", "wrap_half_pi", "yaw_of"]
 
 
 class StepBudget:
-    """Counts physics steps of one primitive and refuses to step past its bound (bounded in sim time)."""
+    """Counts physics steps of one primitive and refuses to step past its bound (bounded in sim time).
 
-    def __init__(self, client: int, max_steps: int):
+    watch: called every watch_every steps; a non-empty answer (why the simulation went unstable) stops the
+    primitive at once, as a spent budget does, and is kept in `unstable`.
+    """
+
+    def __init__(self, client: int, max_steps: int, watch: Callable[[], str] | None = None,
+                 watch_every: int = 24):
         self.client = client
         self.max_steps = max_steps
         self.used = 0
+        self.watch, self.watch_every = watch, watch_every
+        self.unstable = ""
 
     @property
     def exhausted(self) -> bool:
-        return self.used >= self.max_steps
+        return self.used >= self.max_steps or bool(self.unstable)
 
     def step(self) -> bool:
-        """Advance the physics one time step; False (and no step) when the budget is spent."""
-        if self.used >= self.max_steps:
+        """Advance the physics one time step; False (and no step) when the budget is spent or unstable."""
+        if self.exhausted:
             return False
         p.stepSimulation(physicsClientId=self.client)
         self.used += 1
+        if self.watch is not None and self.used % self.watch_every == 0:
+            self.unstable = self.watch()
         return True
 
 
@@ -67,18 +77,13 @@ class Scene:
         self.objects: list[int] = []  # body ids of the task's objects, in spawn order
         self.local_half_extents_m: dict[int, np.ndarray] = {}  # per body, in its own frame (for the oracle)
         self.steps_total = 0
-        # Camera: a PyBullet render has its principal point at the image centre, ((W-1)/2, (H-1)/2).
-        self.intrinsics = np.array([[cam.fy_px, 0.0, (cam.width_px - 1) / 2.0],
-                                    [0.0, cam.fy_px, (cam.height_px - 1) / 2.0],
-                                    [0.0, 0.0, 1.0]])
-        self.T_world_cam = look_at(np.array(sim.camera_eye_m), np.array(sim.camera_target_m),
-                                   np.array(sim.camera_up))
-        self._view = p.computeViewMatrix(sim.camera_eye_m, sim.camera_target_m, sim.camera_up,
-                                         physicsClientId=self.client)
-        self._proj = p.computeProjectionMatrixFOV(vertical_fov_deg(cam.fy_px, cam.height_px),
-                                                  cam.width_px / cam.height_px, cam.near_m, cam.far_m,
-                                                  physicsClientId=self.client)
+        self.robot_id: int | None = None  # set by the environment: never put to sleep what it holds
+        self._calm: dict[int, int] = {}
+        self.camera = Camera(self.client, cam, sim)
+        self.intrinsics, self.T_world_cam = self.camera.intrinsics, self.camera.T_world_cam
         self.reset_world()
+        # The table is drawn once and composited under every frame (camera.py says why).
+        self.camera.capture_table(self._table_extents, self._table_centre, TABLE_RGBA)
 
     # ------------------------------------------------------------------------------------- lifecycle
     def reset_world(self) -> None:
@@ -89,20 +94,25 @@ class Scene:
         p.setGravity(0.0, 0.0, -9.81, physicsClientId=c)
         p.setPhysicsEngineParameter(fixedTimeStep=self.sim.time_step_s, numSubSteps=self.sim.substeps,
                                     numSolverIterations=self.sim.solver_iterations,
+                                    solverResidualThreshold=self.sim.solver_residual_threshold,
                                     deterministicOverlappingPairs=1, physicsClientId=c)
         half = self.sim.table_half_size_m
         centre_x = self.table_centre_x_m = (self.ws.x_min_m + self.ws.x_max_m) / 2.0
         # The table reaches back under the robot base, so the base stands on it.
         half_x = max(half, centre_x + 0.15)
-        extents = (half_x, half, TABLE_THICKNESS_M / 2.0)
+        extents = self._table_extents = (half_x, half, TABLE_THICKNESS_M / 2.0)
+        self._table_centre = (centre_x, 0.0, -TABLE_THICKNESS_M / 2.0)
         col = p.createCollisionShape(p.GEOM_BOX, halfExtents=extents, physicsClientId=c)
-        vis = p.createVisualShape(p.GEOM_BOX, halfExtents=extents, rgbaColor=TABLE_RGBA, physicsClientId=c)
-        self.table_id = p.createMultiBody(0.0, col, vis, [centre_x, 0.0, -TABLE_THICKNESS_M / 2.0],
-                                          physicsClientId=c)
+        self.table_id = p.createMultiBody(0.0, col, -1, list(self._table_centre), physicsClientId=c)
+        # Invisible: the camera composites its pre-rendered table layer instead. (Without a visual shape
+        # PyBullet would draw the collision box; a transparent one is skipped by the renderer.)
+        p.changeVisualShape(self.table_id, -1, rgbaColor=(0.0, 0.0, 0.0, 0.0), physicsClientId=c)
         p.changeDynamics(self.table_id, -1, lateralFriction=0.8, physicsClientId=c)
         self.objects = []
         self.local_half_extents_m = {}
         self.steps_total = 0
+        self.robot_id = None
+        self._calm: dict[int, int] = {}  # per object: consecutive watch() checks found at rest
 
     def close(self) -> None:
         """Disconnect the client. Idempotent."""
@@ -128,13 +138,14 @@ class Scene:
                          physicsClientId=c)
         self.objects.append(body_id)
 
-    def remove_object(self, body_id: int) -> None:
-        """Take a picked object out of the world (clutter removal)."""
+    def remove_object(self, body_id: int, settle_steps: int = 120) -> None:
+        """Take a picked object out of the world (clutter removal) and let the rest settle (and sleep)."""
         p.removeBody(body_id, physicsClientId=self.client)
         self.objects.remove(body_id)
         self.local_half_extents_m.pop(body_id, None)
         for other in self.objects:  # one may have rested on the removed body: it must fall, not float
             p.changeDynamics(other, -1, activationState=p.ACTIVATION_STATE_WAKE_UP, physicsClientId=self.client)
+        self.settle(settle_steps)
 
     def pose(self, body_id: int) -> tuple[np.ndarray, np.ndarray]:
         """(position m, quaternion xyzw) of a body's base in the world frame."""
@@ -165,17 +176,63 @@ class Scene:
             p.stepSimulation(physicsClientId=self.client)
         self.steps_total += n
 
-    def settle(self, max_steps: int, speed_mps: float = 0.005, check_every: int = 20) -> int:
-        """Step until every object is slower than speed_mps (checked every few steps); returns steps used."""
-        used = 0
-        while used < max_steps:
+    def _touching_robot(self, body_id: int) -> bool:
+        return self.robot_id is not None and bool(p.getContactPoints(body_id, self.robot_id,
+                                                                     physicsClientId=self.client))
+
+    def _slow(self, body_id: int, speed_mps: float) -> bool:
+        lin, ang = p.getBaseVelocity(body_id, physicsClientId=self.client)
+        return math.hypot(*lin) < speed_mps and math.hypot(*ang) < REST_ANGULAR_SPEED_RADPS
+
+    def at_rest(self, speed_mps: float = REST_SPEED_MPS) -> bool:
+        """Is every object slower than speed_mps (and REST_ANGULAR_SPEED_RADPS)? A held object (touching
+        the robot) does not count: it may swing in the hand, and it is never put to sleep."""
+        return all(self._touching_robot(b) or self._slow(b, speed_mps) for b in self.objects)
+
+    def settle(self, max_steps: int, speed_mps: float = REST_SPEED_MPS, check_every: int = 10) -> int:
+        """Step until every object is at rest at two checks check_every steps apart, then put them to sleep.
+
+        Two checks, because a rocking object is momentarily still at each turn. Returns the steps used; at
+        max_steps without rest the objects stay awake (Bullet's own sleeping then applies).
+        """
+        used, calm = 0, 0
+        while True:
+            calm = calm + 1 if self.at_rest(speed_mps) else 0
+            if calm >= 2:
+                self.sleep_objects()
+                return used
+            if used >= max_steps:
+                return used
             n = min(check_every, max_steps - used)
             self.step(n)
             used += n
-            if all(np.linalg.norm(p.getBaseVelocity(b, physicsClientId=self.client)[0]) < speed_mps
-                   for b in self.objects):
-                break
-        return used
+
+    def sleep_objects(self, exclude: Sequence[int] = ()) -> None:
+        """Deactivate every object but those in exclude or touching the robot (a held object must follow it)."""
+        c = self.client
+        for b in self.objects:
+            if b in exclude or self._touching_robot(b):
+                continue
+            p.changeDynamics(b, -1, activationState=p.ACTIVATION_STATE_SLEEP, physicsClientId=c)
+
+    def watch(self) -> str:
+        """Run every few steps during a primitive: instability(), and, while sane, put each object that was
+        at rest at two checks in a row to sleep (Bullet itself waits 2 s; a primitive lasts ~1.5 s).
+
+        Sleeping is per object but only takes where it cannot matter: Bullet wakes a whole island again as
+        long as one member (the robot, a held or a sliding object) is active.
+        """
+        reason = self.instability()
+        if reason:
+            return reason
+        for b in self.objects:
+            if self._touching_robot(b) or not self._slow(b, REST_SPEED_MPS):
+                self._calm[b] = 0
+                continue
+            self._calm[b] = self._calm.get(b, 0) + 1
+            if self._calm[b] >= 2:
+                p.changeDynamics(b, -1, activationState=p.ACTIVATION_STATE_SLEEP, physicsClientId=self.client)
+        return ""
 
     def instability(self) -> str:
         """"" when the world is sane, else why not: an object fell off the table, flew away or went NaN."""
@@ -192,19 +249,9 @@ class Scene:
         return ""
 
     # ---------------------------------------------------------------------------------------- camera
-    def render(self, rng: np.random.Generator | None = None) -> Frame:
-        """Capture the camera (ER_TINY_RENDERER, CPU); depth linearised from the z-buffer, noise if configured."""
-        cam = self.cam
-        _, _, rgba, zbuf, _ = p.getCameraImage(cam.width_px, cam.height_px, self._view, self._proj,
-                                               shadow=0, renderer=p.ER_TINY_RENDERER,
-                                               flags=p.ER_NO_SEGMENTATION_MASK, physicsClientId=self.client)
-        rgba = np.asarray(rgba, dtype=np.uint8).reshape(cam.height_px, cam.width_px, 4)
-        depth = zbuffer_to_depth(np.asarray(zbuf).reshape(cam.height_px, cam.width_px), cam.near_m, cam.far_m)
-        if self.sim.depth_noise_std_m > 0.0:
-            if rng is None:
-                raise ValueError("depth noise is configured: render() needs the episode's rng")
-            depth = depth + rng.normal(0.0, self.sim.depth_noise_std_m, depth.shape).astype(np.float32)
-        return Frame(np.ascontiguousarray(rgba[:, :, :3]), depth)
+    def render(self, rng: np.random.Generator | None = None, cull: Sequence[int] = ()) -> Frame:
+        """Capture the camera (camera.Camera.render): cull = bodies hidden when outside the view (the robot)."""
+        return self.camera.render(rng, cull)
 
     def heightmaps(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
         """(color_hm uint8 h x w x 3, depth_hm float32 h x w, metres above the table) via common.heightmap."""
