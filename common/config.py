@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from .config_learner import LearnerConfig
 from .config_replay import ReplayConfig
 from .config_sim import SimConfig
 from .configbase import apply_overrides, from_dict, read_toml, require
@@ -205,6 +206,7 @@ class Config:
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
 
     def __post_init__(self) -> None:
         require(bool(self.run_id) and all(c.isalnum() or c in "-_" for c in self.run_id), "run_id",

@@ -69,3 +69,16 @@ def test_local_zenoh_config_opens_a_real_session():
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
     with zenoh.open(cfg) as session:
         assert str(session.zid())
+
+
+def test_sim_snapshot_writes_a_png_with_the_action_drawn(tmp_path):
+    import cv2
+
+    out = tmp_path / "snap.png"
+    run = romannet("sim", "snapshot", "--task", "stacking", "--seed", "1", "--out", str(out),
+                   "--action", "pick:112:90:30", "--set", "sim.robot=gripper")
+    assert run.returncode == 0, run.stderr
+    image = cv2.imread(str(out))
+    assert image is not None and image.shape[0] >= 224 and image.shape[1] > 3 * 224  # camera + 2 heightmaps
+    bad = romannet("sim", "snapshot", "--out", str(out), "--action", "pick:1:2")
+    assert bad.returncode == 2 and "primitive:row:col:angle_deg" in bad.stderr

@@ -1,0 +1,82 @@
+"""Configuration of the learner: the paper's optimiser and target, the loss, CPU numerics, cadences.
+
+One frozen dataclass, validated on construction: a bad value raises ConfigError naming the field, the value
+and the fix. The root Config holds it as the `learner` section.
+
+Batch size: the paper trains one sampled transition per step. On a CPU a step's cost is dominated by the
+convolutions, whose per-image cost falls when several images of the same net go through one call (oneDNN
+keeps the cores busy and amortises per-layer overhead). The default of 4 is the size where, on the
+2-core development box, transitions trained per second were close to the plateau (see
+docs/benchmarks.md, `romannet bench learner`) while each update still comes every ~second of work, so
+the LAE rate and the published weights stay fresh. Set 1 for the paper's literal schedule.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from .configbase import require
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    """RoManNet training (paper, "Learning the Action-Value Functions") and the learner's cadences."""
+
+    # Optimiser: SGD as in the paper (the paper's "2^-5" weight decay is 2e-5 in the authors' code).
+    lr: float = 1e-4
+    momentum: float = 0.9
+    weight_decay: float = 2e-5
+    # Target Y = R_tp + eta * gamma * V(s_{t+1}), eta = 1 iff R_tp > 0.
+    gamma: float = 0.5
+    batch_size: int = 4  # transitions per update (see the module docstring)
+    huber_delta: float = 1.0  # the paper's Huber loss switches from quadratic to linear at |delta| = 1
+    # "sum": per-pixel Huber losses summed over the label's support (every labelled pixel weighs what VPG's
+    # single labelled pixel weighs); "mean": averaged over the support (the loss no longer grows with the
+    # Gaussian's size). The paper does not say; the authors' code sums.
+    loss_reduction: Literal["sum", "mean"] = "sum"
+    target_network: bool = False  # bootstrap V(s_{t+1}) from a lagged copy instead of the online net
+    target_sync_every_updates: int = 100  # copy online -> target every this many updates
+    rotation_loss_weight: float = 1.0  # weight of the rotation head's squared error beside the Q loss
+    train_rotation_on_success_only: bool = True  # a failed grasp's angle is not a target to imitate
+    # CPU numerics. "bf16": autocast to bfloat16 for the convolutions (fp32 master weights and loss).
+    precision: Literal["fp32", "bf16"] = "bf16"
+    channels_last: bool = True
+    num_threads: int = 0  # 0 = torch's default (one per core)
+    seed: int = 0
+    # Cadences, in updates.
+    checkpoint_every_updates: int = 1000
+    keep_checkpoints: int = 2  # older checkpoints are deleted after a new one is complete
+    publish_every_updates: int = 10
+    # Replay ratio: at most this many updates per newly inserted transition (the learner waits rather than
+    # overfitting a small buffer); 0 = no cap.
+    max_updates_per_insert: float = 4.0
+    min_replay_size: int = 32  # transitions in the buffer before the first update
+
+    def __post_init__(self) -> None:
+        require(math.isfinite(self.lr) and 0.0 < self.lr <= 1.0, "learner.lr", self.lr,
+                "must be in (0, 1] (the paper uses 1e-4)")
+        require(0.0 <= self.momentum < 1.0, "learner.momentum", self.momentum, "must be in [0, 1) (paper: 0.9)")
+        require(0.0 <= self.weight_decay < 1.0, "learner.weight_decay", self.weight_decay,
+                "must be in [0, 1) (paper: 2e-5)")
+        require(0.0 <= self.gamma < 1.0, "learner.gamma", self.gamma, "must be in [0, 1) (paper: 0.5)")
+        require(1 <= self.batch_size <= 256, "learner.batch_size", self.batch_size, "must be 1..256")
+        require(math.isfinite(self.huber_delta) and self.huber_delta > 0, "learner.huber_delta",
+                self.huber_delta, "must be a positive number (paper: 1)")
+        require(self.target_sync_every_updates >= 1, "learner.target_sync_every_updates",
+                self.target_sync_every_updates, "must be >= 1")
+        require(0.0 <= self.rotation_loss_weight <= 100.0, "learner.rotation_loss_weight",
+                self.rotation_loss_weight, "must be in [0, 100] (0 = the rotation head is not trained)")
+        require(0 <= self.num_threads <= 1024, "learner.num_threads", self.num_threads,
+                "must be 0..1024 (0 = torch's default)")
+        require(0 <= self.seed < 2**63, "learner.seed", self.seed, "must be a non-negative integer")
+        require(self.checkpoint_every_updates >= 1, "learner.checkpoint_every_updates",
+                self.checkpoint_every_updates, "must be >= 1")
+        require(self.keep_checkpoints >= 1, "learner.keep_checkpoints", self.keep_checkpoints, "must be >= 1")
+        require(self.publish_every_updates >= 1, "learner.publish_every_updates", self.publish_every_updates,
+                "must be >= 1")
+        require(math.isfinite(self.max_updates_per_insert) and self.max_updates_per_insert >= 0,
+                "learner.max_updates_per_insert", self.max_updates_per_insert, "must be >= 0 (0 = no cap)")
+        require(self.min_replay_size >= 1, "learner.min_replay_size", self.min_replay_size,
+                "must be >= 1 transition")

@@ -1,0 +1,232 @@
+"""WeightsSource over Zenoh: how an actor learns of new weights and exploration rates from the learner.
+
+Usage (the session is the caller's; close the source before the session):
+
+    with open_session(make_config(connect=["tcp/127.0.0.1:7447"], listen=[])) as session:
+        with ZenohWeightsSource(session, run_id="run-1", validate=lambda t: validate_tensors(model, t)) as src:
+            ...
+            new = src.poll_weights()            # None, or (version, tensors): the newest not yet returned
+            rate = src.poll_exploration()       # None, or the newest ExplorationRateMsg not yet returned
+
+Protocol (design section 2): the learner puts a small WeightsAnnouncement (version, sha256, size) on
+`.../weights/announce`; this source fetches the Weights with a query on `.../weights/fetch?version=N` that
+has a timeout, checks SHA-256 and size, and decodes the safetensors bytes to tensors (never pickle). The
+fetch runs on a thread of its own, so Zenoh callbacks stay short and poll_*() never wait for the network.
+An actor that starts after the learner (or sees the learner restart) missed the last announcement, so
+the learner's liveliness token appearing also triggers a fetch of the latest version.
+
+Versions only increase: an announcement, weights or rate not newer than the newest seen is ignored. Bad
+messages (undecodable, digest or size mismatch, weights the actor's model refuses) are logged (throttled)
+and counted in `stats()`; nothing raises into the actor.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import torch
+import zenoh
+
+from . import wire
+from .errors import DecodeError
+from .keys import RunKeys
+from .weightscodec import weights_state_dict
+from .wire_messages import ExplorationRateMsg, WeightsAnnouncementMsg
+from .zenoh_session import ZenohQueryError, query_one
+
+log = logging.getLogger(__name__)
+
+# Seconds between two log lines of the same failure kind: a flood of bad messages must not flood the log.
+_LOG_EVERY_S = 5.0
+_LATEST = -1  # a pending fetch with no announced version: ask for whatever the learner has
+
+
+class ZenohWeightsSource:
+    """WeightsSource (common/interfaces.py) fed by the learner of run_id through `session`.
+
+    fetch_timeout_s: deadline of one weights query (seconds; 23 MB over loopback takes ~0.1 s).
+    validate: optional check of decoded tensors (e.g. `lambda t: validate_tensors(model, t)`); whatever
+    it raises rejects that version. Call close() (or use `with`) before closing the session.
+    """
+
+    def __init__(self, session: zenoh.Session, run_id: str, fetch_timeout_s: float = 10.0,
+                 validate: Callable[[Mapping[str, torch.Tensor]], None] | None = None):
+        self.keys = RunKeys(run_id)
+        self.fetch_timeout_s = float(fetch_timeout_s)
+        self._session = session
+        self._validate = validate
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._closed = False
+        self._counts: Counter[str] = Counter()
+        self._last_logged: dict[str, float] = {}
+        # Weights: newest version seen in any form (announced or fetched), the pending fetch, the result.
+        self._newest_seen = -1
+        self._pending: WeightsAnnouncementMsg | int | None = None
+        self._ready: tuple[int, dict[str, torch.Tensor]] | None = None
+        self._returned_version = -1
+        # Exploration: newest received and newest returned.
+        self._rate: ExplorationRateMsg | None = None
+        self._returned_rate_version = -1
+        self._thread = threading.Thread(target=self._fetch_loop, name="weights-fetch", daemon=True)
+        self._thread.start()
+        self._declared: list[Any] = [
+            session.declare_subscriber(self.keys.weights_announce, self._on_announcement),
+            session.declare_subscriber(self.keys.exploration, self._on_exploration),
+            # history=True: a learner already alive reports at once, which triggers the first fetch.
+            session.liveliness().declare_subscriber(self.keys.learner_alive, self._on_learner_alive,
+                                                    history=True),
+        ]
+
+    # ------------------------------------------------------------------------------------ interface
+    def poll_weights(self) -> tuple[int, dict[str, torch.Tensor]] | None:
+        """The newest (version, state tensors) fetched and not yet returned, or None. Never blocks on I/O."""
+        with self._lock:
+            ready, self._ready = self._ready, None
+            if ready is None or ready[0] <= self._returned_version:
+                return None
+            self._returned_version = ready[0]
+            return ready
+
+    def poll_exploration(self) -> ExplorationRateMsg | None:
+        """The newest exploration rate received and not yet returned, or None."""
+        with self._lock:
+            rate = self._rate
+            if rate is None or rate.version <= self._returned_rate_version:
+                return None
+            self._returned_rate_version = rate.version
+            return rate
+
+    def stats(self) -> dict[str, int]:
+        """Counters: announcements, fetched, rates, ignored_stale, rejected_<reason>, fetch_failed, ..."""
+        with self._lock:
+            out = dict(self._counts)
+            out["newest_version"] = self._newest_seen
+            out["returned_version"] = self._returned_version
+            return out
+
+    def close(self) -> None:
+        """Undeclare the subscribers and stop the fetch thread (a fetch under way ends by its timeout)."""
+        for entity in reversed(self._declared):
+            try:
+                entity.undeclare()
+            except Exception as exc:  # a session closed first: nothing left to undeclare
+                log.debug("undeclare failed: %s", exc)
+        self._declared = []
+        with self._lock:
+            self._closed = True
+            self._wake.notify_all()
+        self._thread.join(self.fetch_timeout_s + 1.0)
+
+    def __enter__(self) -> ZenohWeightsSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------------------------ callbacks
+    # Zenoh runs these on its own threads: decode a few bytes, update state under the lock, return.
+    def _on_announcement(self, sample: zenoh.Sample) -> None:
+        try:
+            ann = wire.decode_weights_announcement(sample.payload.to_bytes())
+        except DecodeError as err:
+            self._reject("bad_announcement", str(err))
+            return
+        with self._lock:
+            self._counts["announcements"] += 1
+            if ann.version <= self._newest_seen:
+                self._counts["ignored_stale"] += 1
+                return
+            self._newest_seen = ann.version
+            self._pending = ann  # replaces an older pending one: only the newest is worth fetching
+            self._wake.notify_all()
+
+    def _on_exploration(self, sample: zenoh.Sample) -> None:
+        try:
+            rate = wire.decode_exploration_rate(sample.payload.to_bytes())
+        except DecodeError as err:
+            self._reject("bad_exploration", str(err))
+            return
+        with self._lock:
+            self._counts["rates"] += 1
+            if self._rate is not None and rate.version <= self._rate.version:
+                self._counts["ignored_stale_rates"] += 1
+                return
+            self._rate = rate
+
+    def _on_learner_alive(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.PUT:
+            log.info("the learner's liveliness token is gone; keeping weights version %d",
+                     self._returned_version)
+            return
+        with self._lock:
+            if self._pending is None:
+                self._pending = _LATEST
+                self._wake.notify_all()
+
+    # ------------------------------------------------------------------------------------ fetching
+    def _fetch_loop(self) -> None:
+        while True:
+            with self._lock:
+                while self._pending is None and not self._closed:
+                    self._wake.wait()
+                if self._closed:
+                    return
+                pending, self._pending = self._pending, None
+            try:
+                self._fetch(pending)
+            except Exception as exc:  # a bug here must not end the thread: the actor keeps its weights
+                self._reject("internal", f"{type(exc).__name__}: {exc}")
+
+    def _fetch(self, pending: WeightsAnnouncementMsg | int) -> None:
+        ann = pending if isinstance(pending, WeightsAnnouncementMsg) else None
+        parameters = f"version={ann.version}" if ann is not None else ""
+        started = time.monotonic()
+        try:
+            data = query_one(self._session, self.keys.weights_fetch, None, self.fetch_timeout_s, parameters)
+        except (ZenohQueryError, TimeoutError) as err:
+            self._reject("fetch_failed", f"weights fetch ({parameters or 'latest'}) failed: {err}")
+            return
+        try:
+            msg = wire.decode_weights(data)
+            if ann is not None and msg.version == ann.version:
+                if msg.sha256_hex != ann.sha256_hex:
+                    raise DecodeError(f"weights v{msg.version} have SHA-256 {msg.sha256_hex}, announced "
+                                      f"{ann.sha256_hex}")
+                if len(msg.safetensors) != ann.size_bytes:
+                    raise DecodeError(f"weights v{msg.version} are {len(msg.safetensors)} bytes, announced "
+                                      f"{ann.size_bytes}")
+            elif ann is not None and msg.version < ann.version:
+                # The learner no longer has what it announced (a restart without --resume): not newer.
+                raise DecodeError(f"asked for weights v{ann.version}, got the older v{msg.version}")
+            tensors = weights_state_dict(msg)
+            if self._validate is not None:
+                self._validate(tensors)
+        except Exception as err:  # DecodeError, or whatever the caller's validate raises
+            self._reject("bad_weights", f"{type(err).__name__}: {err}")
+            return
+        with self._lock:
+            if msg.version <= self._returned_version or (self._ready and msg.version <= self._ready[0]):
+                self._counts["ignored_stale"] += 1
+                return
+            self._newest_seen = max(self._newest_seen, msg.version)
+            self._ready = (msg.version, tensors)
+            self._counts["fetched"] += 1
+        log.debug("fetched weights v%d (%d bytes) in %.3f s", msg.version, len(msg.safetensors),
+                  time.monotonic() - started)
+
+    def _reject(self, reason: str, detail: str) -> None:
+        """Count a bad message or failed fetch and log it, at most once per _LOG_EVERY_S per reason."""
+        now = time.monotonic()
+        with self._lock:
+            self._counts[f"rejected_{reason}"] += 1
+            count = self._counts[f"rejected_{reason}"]
+            if now - self._last_logged.get(reason, -_LOG_EVERY_S) < _LOG_EVERY_S:
+                return
+            self._last_logged[reason] = now
+        log.warning("weights source: %s (%d so far): %s", reason, count, detail[:500])

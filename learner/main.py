@@ -1,0 +1,77 @@
+"""`romannet learner`: train in the foreground until SIGTERM or SIGINT.
+
+    romannet learner --config run.toml --run-dir runs/run-1 --connect tcp/127.0.0.1:7447
+    romannet learner --run-dir runs/run-1 --resume --connect tcp/127.0.0.1:7447
+
+The TOML file is the fleet config (configs/default.toml): run_id picks the keys, [workspace] the heightmap
+size every sampled transition must have, [learner] the training (common/config_learner.py). With --resume
+and no --config, the run directory's saved config.toml is used (plus any --set overrides), so a resumed run
+trains what the interrupted one did. A signal sets a stop event; the learner finishes the step under way,
+publishes its weights, writes a checkpoint, closes the session, and the process exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import threading
+from pathlib import Path
+
+from romannet.common.config import Config, load_config
+from romannet.common.errors import RomannetError
+from romannet.common.zenoh_session import make_config, open_session
+
+from .batches import TolerantReplayClient
+from .checkpoint import latest_checkpoint
+from .service import run_learner
+
+log = logging.getLogger(__name__)
+
+
+def resolve_config(config_path: str | None, overrides: list[str], run_dir: Path, resume: bool) -> Config:
+    """The run's config: --config, else (on --resume) the run directory's config.toml, else defaults."""
+    saved = run_dir / "config.toml"
+    if config_path is None and resume:
+        if not saved.is_file():
+            raise RomannetError(f"--resume: {saved} does not exist: is {run_dir} a learner run directory? "
+                                "(pass --config to resume with another config)")
+        config_path = str(saved)
+    return load_config(config_path, overrides)
+
+
+def check_run_dir(run_dir: Path, resume: bool) -> None:
+    """Refuse what would silently go wrong: --resume without a checkpoint, or a fresh start over one
+    (its weights versions would restart at 0, which actors ignore as older than what they hold)."""
+    existing = latest_checkpoint(run_dir)
+    if resume and existing is None:
+        raise RomannetError(f"--resume: {run_dir} holds no checkpoint to resume from")
+    if not resume and existing is not None:
+        raise RomannetError(f"--run-dir {run_dir} already holds checkpoint {existing.name}: pass --resume to "
+                            "continue that run, or choose a new --run-dir")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the learner for parsed CLI arguments (see romannet/cli.py); returns the exit code."""
+    run_dir = Path(args.run_dir)
+    check_run_dir(run_dir, args.resume)
+    config = resolve_config(args.config, args.overrides, run_dir, args.resume)
+    zenoh_config = make_config(args.zenoh_config, listen=args.listen or None, connect=args.connect or None)
+    ws = config.workspace
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        log.info("received %s: finishing the current step, then checkpoint and exit", signal.Signals(signum).name)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        with open_session(zenoh_config) as session:
+            client = TolerantReplayClient(session, config.run_id, expected_shape=(ws.height_px, ws.width_px))
+            run_learner(config, run_dir, client, session, stop, resume=args.resume,
+                        ready=lambda trainer: log.info("learner ready (run %s, dir %s, update %d)",
+                                                       config.run_id, run_dir, trainer.updates))
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0

@@ -1,0 +1,262 @@
+"""The learner's training step: RoManNet, an optional target net, SGD, the LAE rate (no threads, no transport).
+
+One `train_step(batch)`:
+1. V(s_{t+1}) by an explicit no-grad forward pass over the nets allowed in s_{t+1} (the target net's when
+   enabled, else the online net's), only for items that bootstrap (R_tp > 0 and not done: eta = 0 or the
+   episode's end make V irrelevant, so its forward pass is skipped).
+2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel.
+3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net; the
+   Huber loss over each label's support (+ the rotation loss at the executed pixel on successes), times
+   the item's importance-sampling weight, averaged over the batch. Only the executed primitives' nets get
+   gradients; the others keep `.grad is None`, so SGD skips them entirely (no weight decay, no momentum).
+4. One SGD step; the exploration rate is updated with the paper's L_t (the Huber of the executed pixel's
+   TD error, averaged over the batch).
+
+BatchNorm: the nets train in train mode (batch statistics). Even at batch 1 a conv BN layer normalises
+over h*w >= 16*16 positions per channel, so per-image statistics are well defined; VPG trains the same way.
+Value estimates that leave the step (V(s_{t+1}), and the actors' decisions) use eval mode, i.e. the
+running statistics the published weights carry, so the bootstrap sees the same function the actors act on.
+
+CPU numerics (LearnerConfig): channels_last memory format and bf16 autocast (fp32 master weights, fp32
+loss and optimiser). See docs/benchmarks.md and bench/learner.py for what each buys.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+import types
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from romannet.common.config import ExplorationConfig, ModelConfig, RewardConfig, TaskConfig
+from romannet.common.config_learner import LearnerConfig
+from romannet.common.exploration import ExplorationRate
+from romannet.common.model import RoManNet, preprocess_batch, state_dict_to_tensors
+from romannet.common.policy import nets_to_run
+from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
+
+from .targets import bootstrap_value, huber, q_label, rotation_target, support_loss, td_target
+
+logger = logging.getLogger(__name__)
+
+BatchItem = tuple[TransitionMsg, float, int]  # (transition, importance-sampling weight, replay item id)
+
+
+@dataclass(frozen=True)
+class StepStats:
+    """What one update did. Losses are dimensionless (Q is in reward units); per-item tuples follow the
+    batch order."""
+
+    loss: float  # the optimised objective: mean over items of is_weight * (Q loss + w_rot * rotation loss)
+    loss_by_primitive: dict[str, float]  # mean unweighted item loss per executed primitive
+    td_errors: tuple[float, ...]  # |Q(s_t, a_t) - Y| at the executed pixel (new replay priorities)
+    targets: tuple[float, ...]  # Y per item
+    item_ids: tuple[int, ...]
+    q_mean: dict[str, float]  # over the Q maps of s_t of the items trained in that net
+    q_max: dict[str, float]
+    exploration_loss: float  # the paper's L_t: mean over items of Huber(TD error at the executed pixel)
+    exploration_rate: float  # after this step's update
+    updates: int  # updates done, this one included
+    duration_s: float = 0.0
+    extra: dict[str, float] = field(default_factory=dict)
+
+    def priority_update(self) -> PriorityUpdateMsg:
+        """The replay priorities of this batch: |TD error| per item id."""
+        return PriorityUpdateMsg(self.item_ids, self.td_errors)
+
+
+def _fp32_head_forward(self: torch.nn.Conv2d, x: Tensor) -> Tensor:
+    # bf16 keeps 8 mantissa bits: a Q map rounded to them moves TD errors and argmaxes by ~0.4 %, so the
+    # 1x1 heads (a negligible share of the FLOPs) run in fp32 on the bf16 features, as the actors' do.
+    with torch.autocast(x.device.type, enabled=False):
+        return torch.nn.functional.conv2d(x.float(), self.weight, self.bias)
+
+
+def _fp32_heads(model: RoManNet) -> None:
+    """Make every net's Q and rotation heads compute in fp32 under autocast (state_dict keys unchanged)."""
+    for net in model.nets.values():
+        for head in (net.q_head, net.rot_head):
+            head.forward = types.MethodType(_fp32_head_forward, head)
+
+
+def batch_items(batch: SampleBatchMsg) -> list[BatchItem]:
+    """(transition, is_weight, item_id) triples of a decoded sample batch."""
+    items = []
+    for it in batch.items:
+        if not isinstance(it.transition, TransitionMsg):
+            raise TypeError(f"item {it.item_id} holds encoded bytes; decode the batch first")
+        items.append((it.transition, it.is_weight, it.item_id))
+    return items
+
+
+class Trainer:
+    """RoManNet + optional target net + SGD + exploration rate, stepping on lists of replay items."""
+
+    def __init__(self, model_cfg: ModelConfig, learner_cfg: LearnerConfig, reward_cfg: RewardConfig,
+                 task_cfg: TaskConfig, seed: int | None = None,
+                 exploration_cfg: ExplorationConfig | None = None, device: str = "cpu"):
+        self.model_cfg, self.cfg, self.reward_cfg, self.task_cfg = model_cfg, learner_cfg, reward_cfg, task_cfg
+        self.exploration_cfg = exploration_cfg or ExplorationConfig()
+        self.seed = learner_cfg.seed if seed is None else seed
+        self.device = torch.device(device)
+        if learner_cfg.num_threads > 0:
+            torch.set_num_threads(learner_cfg.num_threads)
+        self.memory_format = torch.channels_last if learner_cfg.channels_last else torch.contiguous_format
+        self.model = RoManNet(model_cfg, seed=self.seed).to(self.device, memory_format=self.memory_format)
+        self.model.train()
+        _fp32_heads(self.model)
+        self.target: RoManNet | None = None
+        if learner_cfg.target_network:
+            self.target = copy.deepcopy(self.model).eval().requires_grad_(False)
+        self.optimizer = torch.optim.SGD(self.model.parameters(), lr=learner_cfg.lr,
+                                         momentum=learner_cfg.momentum, weight_decay=learner_cfg.weight_decay)
+        self.exploration = ExplorationRate(self.exploration_cfg)
+        self.updates = 0
+        self.primitives = task_cfg.primitives
+
+    # ------------------------------------------------------------------------------------------ helpers
+    def _autocast(self):
+        if self.cfg.precision == "bf16":
+            return torch.autocast(self.device.type, dtype=torch.bfloat16)
+        return nullcontext()
+
+    def _inputs(self, colors: Sequence[np.ndarray], depths: Sequence[np.ndarray]) -> Tensor:
+        x = preprocess_batch(np.stack(colors), np.stack(depths))
+        return x.to(self.device).contiguous(memory_format=self.memory_format)
+
+    def state_tensors(self) -> dict[str, Tensor]:
+        """The online net's weights and BN statistics as a flat CPU tensor dict (what actors load)."""
+        return state_dict_to_tensors(self.model)
+
+    def sync_target(self) -> None:
+        """Copy the online net into the target net (no-op without a target net)."""
+        if self.target is not None:
+            self.target.load_state_dict(self.model.state_dict())
+
+    @torch.no_grad()
+    def next_state_values(self, transitions: Sequence[TransitionMsg]) -> list[float]:
+        """V(s_{t+1}) per transition, 0 where it cannot matter (done, or R_tp <= 0 so eta = 0)."""
+        values = [0.0] * len(transitions)
+        need = [i for i, t in enumerate(transitions) if not t.done and t.reward > 0]
+        if not need:
+            return values
+        net_model = self.target if self.target is not None else self.model
+        was_training = net_model.training
+        net_model.eval()  # the running statistics: the same function the actors act on
+        try:
+            by_net: dict[str, list[int]] = defaultdict(list)
+            for i in need:
+                for p in nets_to_run(transitions[i].holding_after, self.primitives):
+                    by_net[p].append(i)
+            maxima: dict[int, dict[str, float]] = defaultdict(dict)
+            for p, idx in by_net.items():
+                x = self._inputs([transitions[i].color_after for i in idx], [transitions[i].depth_after for i in idx])
+                with self._autocast():
+                    q, _ = net_model.nets[p](x)
+                for i, m in zip(idx, q.float().amax(dim=(1, 2)).tolist(), strict=True):
+                    maxima[i][p] = m
+            for i in need:
+                t = transitions[i]
+                values[i] = bootstrap_value(maxima[i], t.holding_after, self.primitives, t.done)
+        finally:
+            net_model.train(was_training)
+        return values
+
+    # ------------------------------------------------------------------------------------------ the step
+    def train_step(self, batch: Iterable[BatchItem]) -> StepStats:
+        """One SGD update on (transition, is_weight, item_id) items; see the module docstring."""
+        start = time.perf_counter()
+        items = list(batch)
+        if not items:
+            raise ValueError("train_step needs at least one item")
+        transitions = [t for t, _, _ in items]
+        for _, w, _ in items:
+            if not (w > 0 and np.isfinite(w)):
+                raise ValueError(f"importance-sampling weight {w!r} must be finite and > 0")
+        cfg, n = self.cfg, len(items)
+        v_next = self.next_state_values(transitions)
+        targets = [td_target(t.reward, v, cfg.gamma) for t, v in zip(transitions, v_next, strict=True)]
+
+        groups: dict[str, list[int]] = defaultdict(list)
+        for i, t in enumerate(transitions):
+            groups[t.action.primitive].append(i)
+
+        self.optimizer.zero_grad(set_to_none=True)
+        total = torch.zeros((), device=self.device)
+        td_errors = [0.0] * n
+        pixel_huber = [0.0] * n
+        loss_by_primitive: dict[str, float] = {}
+        q_mean: dict[str, float] = {}
+        q_max: dict[str, float] = {}
+        for p, idx in groups.items():
+            group_loss, item_losses = self._group_loss(p, idx, items, v_next, targets, td_errors, pixel_huber,
+                                                       q_mean, q_max)
+            total = total + group_loss
+            loss_by_primitive[p] = float(np.mean(item_losses))
+        loss = total / n
+        if not torch.isfinite(loss):  # a diverged learner must not step (nor publish, nor move the LAE rate)
+            raise FloatingPointError(f"training loss is {float(loss.detach())} at update {self.updates + 1}; "
+                                     "lower learner.lr or check the batch")
+        loss.backward()
+        self.optimizer.step()
+        self.updates += 1
+        if self.target is not None and self.updates % cfg.target_sync_every_updates == 0:
+            self.sync_target()
+        exploration_loss = float(np.mean(pixel_huber))
+        rate = self.exploration.update(exploration_loss)
+        return StepStats(loss=float(loss.detach()), loss_by_primitive=loss_by_primitive, td_errors=tuple(td_errors),
+                         targets=tuple(targets), item_ids=tuple(int(i) for _, _, i in items), q_mean=q_mean,
+                         q_max=q_max, exploration_loss=exploration_loss, exploration_rate=rate,
+                         updates=self.updates, duration_s=time.perf_counter() - start)
+
+    def _group_loss(self, p: str, idx: list[int], items: list[BatchItem], v_next: list[float],
+                    targets: list[float], td_errors: list[float], pixel_huber: list[float],
+                    q_mean: dict[str, float], q_max: dict[str, float]) -> tuple[Tensor, list[float]]:
+        """IS-weighted summed loss of one primitive's items (one forward pass); fills the per-item outputs."""
+        cfg = self.cfg
+        ts = [items[i][0] for i in idx]
+        h, w = ts[0].shape
+        labels, supports = [], []
+        for t, i in zip(ts, idx, strict=True):
+            lab, sup = q_label((h, w), t.action.row, t.action.col, t.action.angle_rad, t.reward, v_next[i],
+                               cfg.gamma, self.reward_cfg)
+            labels.append(lab)
+            supports.append(sup)
+        label = torch.from_numpy(np.stack(labels)).to(self.device)
+        support = torch.from_numpy(np.stack(supports)).to(self.device)
+        x = self._inputs([t.color_before for t in ts], [t.depth_before for t in ts])
+        with self._autocast():
+            q, rot = self.model.nets[p](x)
+        q, rot = q.float(), rot.float()
+        rows = torch.tensor([t.action.row for t in ts], device=self.device)
+        cols = torch.tensor([t.action.col for t in ts], device=self.device)
+        ar = torch.arange(len(ts), device=self.device)
+        q_exec = q[ar, rows, cols]
+        rot_exec = rot[ar, :, rows, cols]  # (k, 2)
+        y = torch.tensor([targets[i] for i in idx], device=self.device)
+        is_w = torch.tensor([items[i][1] for i in idx], device=self.device, dtype=torch.float32)
+        q_losses = torch.stack([support_loss(q[k], label[k], support[k], cfg.huber_delta, cfg.loss_reduction)
+                                for k in range(len(ts))])
+        train_rot = [cfg.rotation_loss_weight > 0 and (t.success or not cfg.train_rotation_on_success_only)
+                     for t in ts]
+        rot_target = torch.tensor([rotation_target(t.action.angle_rad, p) for t in ts], device=self.device)
+        rot_mask = torch.tensor(train_rot, device=self.device, dtype=torch.float32)
+        rot_losses = ((rot_exec - rot_target) ** 2).sum(dim=1) * rot_mask
+        item_losses = q_losses + cfg.rotation_loss_weight * rot_losses
+        with torch.no_grad():
+            err = (q_exec - y).detach()
+            for k, i in enumerate(idx):
+                td_errors[i] = abs(float(err[k]))
+            for k, hub in enumerate(huber(err, cfg.huber_delta).tolist()):
+                pixel_huber[idx[k]] = hub
+            q_mean[p] = float(q.mean())
+            q_max[p] = float(q.max())
+        return (is_w * item_losses).sum(), item_losses.detach().tolist()

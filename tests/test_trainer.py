@@ -1,0 +1,127 @@
+"""Trainer: gradients reach only the executed nets, targets, IS weights, LAE, target net, published weights."""
+
+from __future__ import annotations
+
+import _learner_helpers as H
+import pytest
+import torch
+
+from romannet.common.exploration import lae_update
+from romannet.common.model import RoManNet, load_tensors, preprocess_batch
+from romannet.common.weightscodec import make_weights, weights_state_dict
+from romannet.learner.targets import huber
+
+
+def _params(model, primitive):
+    return {k: v.detach().clone() for k, v in model.nets[primitive].state_dict().items()}
+
+
+def test_gradients_reach_only_the_executed_primitives():
+    t = H.trainer()
+    place_before = _params(t.model, "place")
+    stats = t.train_step(H.batch(2))  # one pick, one push
+    assert set(stats.loss_by_primitive) == {"pick", "push"}
+    for name, p in t.model.nets["place"].named_parameters():
+        assert p.grad is None, name
+    for name, v in t.model.nets["place"].state_dict().items():
+        assert torch.equal(v, place_before[name]), name  # no weight decay, momentum or BN update either
+    assert all(p.grad is not None for p in t.model.nets["pick"].parameters())
+    assert all(p.grad is not None for p in t.model.nets["push"].parameters())
+
+    t = H.trainer()
+    t.train_step([(H.transition(primitive="pick"), 1.0, 0)])
+    assert all(p.grad is None for net in ("push", "place") for p in t.model.nets[net].parameters())
+
+
+def test_td_error_is_at_the_executed_pixel_against_the_target():
+    t = H.trainer()
+    tr = H.transition(primitive="pick", reward=1.0, done=True, row=7, col=19)
+    x = preprocess_batch(tr.color_before[None], tr.depth_before[None])
+    with torch.no_grad():
+        q, _ = t.model.nets["pick"](x)  # train mode, as the step's forward pass
+    stats = t.train_step([(tr, 1.0, 42)])
+    assert stats.targets == (1.0,)  # done: no bootstrap
+    assert stats.td_errors[0] == pytest.approx(abs(float(q[0, 7, 19]) - 1.0), rel=1e-5)
+    assert stats.item_ids == (42,)
+    assert stats.priority_update().priorities == stats.td_errors
+    # LAE: updated once with the paper's L_t = Huber(TD error at the executed pixel).
+    assert stats.exploration_loss == pytest.approx(float(huber(torch.tensor(stats.td_errors[0]))), rel=1e-6)
+    assert t.exploration.steps == 1
+    assert stats.exploration_rate == pytest.approx(lae_update(0.5, stats.exploration_loss, t.exploration_cfg))
+
+
+def test_bootstrap_only_on_success_and_from_the_allowed_nets():
+    t = H.trainer()
+    ok = H.transition(primitive="pick", reward=0.5, done=False, seed=1)
+    fail = H.transition(primitive="pick", success=False, reward=0.0, done=False, seed=2)
+    v = t.next_state_values([ok, fail])
+    assert v[1] == 0.0
+    t.model.eval()
+    with torch.no_grad():
+        x = preprocess_batch(ok.color_after[None], ok.depth_after[None])
+        expected = max(float(t.model.nets[p](x)[0].max()) for p in ("push", "pick"))
+    t.model.train()
+    assert v[0] == pytest.approx(expected, rel=1e-5)
+    stats = t.train_step([(ok, 1.0, 0), (fail, 1.0, 1)])
+    assert stats.targets[0] == pytest.approx(0.5 + 0.5 * expected, rel=1e-5)
+    assert stats.targets[1] == 0.0
+
+
+def test_target_network_is_used_and_synced():
+    t = H.trainer(target_network=True, target_sync_every_updates=2)
+    with torch.no_grad():
+        for p in t.target.parameters():
+            p.add_(0.05)
+    ok = H.transition(primitive="pick", reward=1.0, done=False)
+    with torch.no_grad():
+        x = preprocess_batch(ok.color_after[None], ok.depth_after[None])
+        expected = max(float(t.target.nets[p](x)[0].max()) for p in ("push", "pick"))
+    assert t.next_state_values([ok])[0] == pytest.approx(expected, rel=1e-5)
+    t.train_step([(ok, 1.0, 0)])
+    t.train_step([(ok, 1.0, 0)])
+    for k, v in t.model.state_dict().items():
+        assert torch.equal(v, t.target.state_dict()[k]), k
+
+
+def test_is_weight_scales_the_loss():
+    a, b = H.trainer(), H.trainer()
+    tr = H.transition(primitive="push", reward=0.2)
+    la = a.train_step([(tr, 1.0, 0)]).loss
+    lb = b.train_step([(tr, 0.25, 0)]).loss
+    assert lb == pytest.approx(0.25 * la, rel=1e-6)
+
+
+def test_rotation_head_trained_only_on_success():
+    t = H.trainer()
+    t.train_step([(H.transition(primitive="pick", success=False, reward=0.0), 1.0, 0)])
+    assert not t.model.nets["pick"].rot_head.weight.grad.any()
+    t = H.trainer()
+    t.train_step([(H.transition(primitive="pick"), 1.0, 0)])
+    assert t.model.nets["pick"].rot_head.weight.grad.abs().sum() > 0
+
+
+def test_published_weights_decode_and_load_in_a_fresh_model():
+    t = H.trainer()
+    t.train_step(H.batch(3))
+    msg, ann = make_weights(1, t.state_tensors())
+    fresh = RoManNet(H.SMALL_MODEL, seed=99)
+    load_tensors(fresh, weights_state_dict(msg))
+    for k, v in t.model.state_dict().items():
+        assert torch.equal(fresh.state_dict()[k], v), k
+    assert ann.size_bytes == len(msg.safetensors)
+
+
+def test_bf16_step_tracks_fp32():
+    """The fast setting computes the same step within bf16's rounding (learning: tests/test_learning.py)."""
+    items = H.batch(3)
+    l32 = H.trainer(precision="fp32").train_step(items).loss
+    l16 = H.trainer(precision="bf16").train_step(items).loss
+    assert l16 == pytest.approx(l32, rel=0.05)
+
+
+def test_rejects_bad_batches():
+    t = H.trainer()
+    with pytest.raises(ValueError):
+        t.train_step([])
+    with pytest.raises(ValueError):
+        t.train_step([(H.transition(), 0.0, 0)])
