@@ -44,6 +44,7 @@ class LearnerConfig:
     precision: Literal["fp32", "bf16"] = "bf16"
     channels_last: bool = True
     num_threads: int = 0  # 0 = torch's default (one per core)
+    device: str = "cpu"  # "cuda" / "cuda:N" trains on a GPU when the machine has one
     seed: int = 0
     # Cadences, in updates.
     checkpoint_every_updates: int = 1000
@@ -55,6 +56,9 @@ class LearnerConfig:
     min_replay_size: int = 32  # transitions in the buffer before the first update
 
     def __post_init__(self) -> None:
+        require(self.device == "cpu" or self.device == "cuda" or
+                (self.device.startswith("cuda:") and self.device[5:].isdigit()), "learner.device", self.device,
+                "must be 'cpu', 'cuda' or 'cuda:N'")
         require(math.isfinite(self.lr) and 0.0 < self.lr <= 1.0, "learner.lr", self.lr,
                 "must be in (0, 1] (the paper uses 1e-4)")
         require(0.0 <= self.momentum < 1.0, "learner.momentum", self.momentum, "must be in [0, 1) (paper: 0.9)")

@@ -94,7 +94,7 @@ def run_learner(cfg: Config, run_dir: str | Path, replay_client: ReplayClient, s
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     lcfg = cfg.learner
-    trainer = Trainer(cfg.model, lcfg, cfg.reward, cfg.task, exploration_cfg=cfg.exploration)
+    trainer = Trainer(cfg.model, lcfg, cfg.reward, cfg.task, exploration_cfg=cfg.exploration, device=lcfg.device)
     if resume:
         load_checkpoint(trainer, run_dir)  # logs the checkpoint and its update count
     write_toml(cfg, run_dir / "config.toml")  # the resolved config of this run, next to its results

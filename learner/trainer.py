@@ -38,6 +38,7 @@ from torch import Tensor
 
 from romannet.common.config import ExplorationConfig, ModelConfig, RewardConfig, TaskConfig
 from romannet.common.config_learner import LearnerConfig
+from romannet.common.errors import ConfigError
 from romannet.common.exploration import ExplorationRate
 from romannet.common.model import RoManNet, preprocess_batch, state_dict_to_tensors
 from romannet.common.policy import nets_to_run
@@ -102,10 +103,13 @@ class Trainer:
 
     def __init__(self, model_cfg: ModelConfig, learner_cfg: LearnerConfig, reward_cfg: RewardConfig,
                  task_cfg: TaskConfig, seed: int | None = None,
-                 exploration_cfg: ExplorationConfig | None = None, device: str = "cpu"):
+                 exploration_cfg: ExplorationConfig | None = None, device: str | None = None):
         self.model_cfg, self.cfg, self.reward_cfg, self.task_cfg = model_cfg, learner_cfg, reward_cfg, task_cfg
         self.exploration_cfg = exploration_cfg or ExplorationConfig()
         self.seed = learner_cfg.seed if seed is None else seed
+        device = device or learner_cfg.device  # an explicit argument (the benchmark's) wins over the config
+        if device.startswith("cuda") and not torch.cuda.is_available():
+            raise ConfigError("learner.device", device, "CUDA is not available on this machine; use 'cpu'")
         self.device = torch.device(device)
         if learner_cfg.num_threads > 0:
             torch.set_num_threads(learner_cfg.num_threads)

@@ -125,3 +125,19 @@ def test_rejects_bad_batches():
         t.train_step([])
     with pytest.raises(ValueError):
         t.train_step([(H.transition(), 0.0, 0)])
+
+
+def test_cuda_device_without_a_gpu_is_a_clear_config_error():
+    import torch
+
+    from romannet.common.config import ModelConfig, RewardConfig, TaskConfig
+    from romannet.common.config_learner import LearnerConfig
+    from romannet.common.errors import ConfigError
+    from romannet.learner.trainer import Trainer
+
+    with pytest.raises(ConfigError, match="learner.device"):
+        LearnerConfig(device="gpu0")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="CUDA is not available"):
+            Trainer(ModelConfig(channels=8, residual_blocks=1), LearnerConfig(device="cuda"), RewardConfig(),
+                    TaskConfig())
