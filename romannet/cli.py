@@ -50,15 +50,20 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _repeats(args: argparse.Namespace) -> dict:
+    """Each benchmark has its own default repeat count; pass --repeats only when the user gave it."""
+    return {} if args.repeats is None else {"repeats": args.repeats}
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "inference":
         from romannet.bench.inference import run_inference_benchmark
 
-        result = run_inference_benchmark(repeats=args.repeats, seed=args.seed)
+        result = run_inference_benchmark(seed=args.seed, **_repeats(args))
     elif args.what == "replay":
         from romannet.bench.replay import run_replay_benchmark
 
-        result = run_replay_benchmark(inserts=args.inserts, repeats=args.repeats, seed=args.seed)
+        result = run_replay_benchmark(inserts=args.inserts, seed=args.seed, **_repeats(args))
     elif args.what == "sim":
         from romannet.bench.sim import run_sim_benchmark
 
@@ -68,7 +73,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from romannet.bench.learner import run_learner_benchmark
 
         sizes = tuple(int(b) for b in args.batch_sizes.split(",") if b.strip())
-        result = run_learner_benchmark(batch_sizes=sizes, repeats=args.repeats, seed=args.seed)
+        result = run_learner_benchmark(batch_sizes=sizes, seed=args.seed, device=args.device, **_repeats(args))
     else:  # argparse choices make this unreachable; kept explicit for the error message
         raise SystemExit(f"unknown benchmark {args.what!r}")
     text = json.dumps(result, indent=None if args.json else 2)
@@ -142,12 +147,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "sim: simulator actions/s per task, ms per render, heightmap and primitive; "
                         "learner: transitions trained/s per batch size vs the naive eager fp32 step")
     p.add_argument("--json", action="store_true", help="print compact JSON on one line")
-    p.add_argument("--repeats", type=int, default=30, help="timed repeats per measurement (median reported)")
+    p.add_argument("--repeats", type=int, default=None,
+                   help="timed repeats per measurement (median reported); default: each benchmark's own")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--inserts", type=int, default=2000, help="replay: transitions inserted (and recovered)")
     p.add_argument("--actions", type=int, default=10, help="sim: actions per task and policy")
     p.add_argument("--robots", default="arm,gripper", help="sim: comma-separated robot modes (arm, gripper)")
     p.add_argument("--batch-sizes", default="1,4,8", help="learner: comma-separated transitions per update")
+    p.add_argument("--device", default="cpu", help="learner: torch device, e.g. cpu or cuda (when there is a GPU)")
 
     p = verb("sim", "simulator tools: `snapshot` writes the camera image and both heightmaps as one PNG", cmd_sim)
     p.add_argument("tool", choices=["snapshot"])
