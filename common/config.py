@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from .config_actor import ActorConfig
 from .config_learner import LearnerConfig
 from .config_replay import ReplayConfig
 from .config_sim import SimConfig
@@ -169,7 +170,7 @@ class ExplorationConfig:
     sigma: float = 0.33  # inverse sensitivity (the authors' code)
     beta: float = 0.25
     initial_rate: float = 0.5
-    top_k: int = 10  # action candidates: top-k local maxima across the allowed nets' Q maps
+    top_k: int = 10  # action candidates: the top-k local maxima of each allowed net's Q map
     candidate_min_distance_px: int = 5  # local maxima closer than this are one candidate
     random_angle_prob: float = 0.5  # when exploring, draw the angle uniformly with this probability
     epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
@@ -207,6 +208,7 @@ class Config:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     learner: LearnerConfig = field(default_factory=LearnerConfig)
+    actor: ActorConfig = field(default_factory=ActorConfig)
 
     def __post_init__(self) -> None:
         require(bool(self.run_id) and all(c.isalnum() or c in "-_" for c in self.run_id), "run_id",

@@ -140,7 +140,27 @@ def _as_map(q: np.ndarray, name: str, shape: tuple[int, ...] | None) -> np.ndarr
 
 
 def action_candidates(q_maps: dict[str, np.ndarray], k: int, min_distance_px: int) -> list[Candidate]:
-    """Top-k local maxima across the given nets' Q maps, best first: [(primitive, row, col, q), ...].
+    """The top-k local maxima of EACH given net's Q map, pooled and sorted best first.
+
+    Per net, not pooled before the cut: nets start at different Q offsets (random init, or a primitive that
+    has earned more reward), and a pooled top-k then holds one primitive only, so exploration would never
+    try the other (seen: 129 untrained actions, all picks). With k per net, uniform exploration over the
+    candidates tries every allowed primitive. Returns [(primitive, row, col, q), ...]; see _top_k_maxima.
+    """
+    if k < 1 or min_distance_px < 1:
+        raise ValueError(f"k = {k!r} and min_distance_px = {min_distance_px!r} must both be >= 1")
+    prims = _ordered_primitives(q_maps)
+    shape = _as_map(q_maps[prims[0]], prims[0], None).shape
+    pooled: list[Candidate] = []
+    for prim in prims:
+        _as_map(q_maps[prim], prim, shape)  # same shape for every net
+        pooled += _top_k_maxima({prim: q_maps[prim]}, k, min_distance_px)
+    order = {prim: i for i, prim in enumerate(prims)}
+    return sorted(pooled, key=lambda c: (-c[3], order[c[0]], c[1], c[2]))
+
+
+def _top_k_maxima(q_maps: dict[str, np.ndarray], k: int, min_distance_px: int) -> list[Candidate]:
+    """Top-k local maxima across the given Q maps, best first: [(primitive, row, col, q), ...].
 
     A pixel is a local maximum of its own map if no pixel within `min_distance_px` (square window) is higher;
     equal-valued maxima (plateaus) closer than `min_distance_px` (Euclidean) in the same map count once, the

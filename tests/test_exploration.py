@@ -132,8 +132,17 @@ def test_candidates_are_the_local_maxima_across_nets_best_first():
         ("push", 40, 50), ("pick", 20, 30), ("push", 10, 10), ("pick", 50, 10)]
     assert [v for *_, v in cands[:4]] == pytest.approx([0.9, 0.6, 0.3, 0.1], rel=1e-6)
     # the rest are the far background's (~0) plateaus: non-strict maxima, spaced by min_distance_px
-    assert len(cands) <= 10 and all(v < 1e-3 for *_, v in cands[4:])
-    assert action_candidates(q, k=2, min_distance_px=5) == cands[:2]
+    assert len(cands) <= 2 * 10 and all(v < 1e-3 for *_, v in cands[4:])
+    assert action_candidates(q, k=2, min_distance_px=5) == cands[:4]  # k per net
+
+
+def test_every_allowed_net_contributes_candidates_whatever_its_q_offset():
+    # PickNet reads higher everywhere (e.g. untrained offsets): exploration must still try pushes.
+    q = {"push": peaks_map({(10, 10): 0.3, (40, 50): 0.2}), "pick": 5.0 + peaks_map({(20, 30): 0.6})}
+    cands = action_candidates(q, k=3, min_distance_px=5)
+    prims = [p for p, *_ in cands]
+    assert prims.count("push") == 3 and prims.count("pick") == 3
+    assert ("push", 10, 10) in [(p, r, c) for p, r, c, _ in cands]
 
 
 @given(st.integers(0, 2**32 - 1), st.integers(1, 20), st.integers(1, 8))
@@ -141,7 +150,8 @@ def test_candidates_are_at_most_k_true_local_maxima(seed, k, distance):
     rng = np.random.default_rng(seed)
     q = {"push": rng.random((32, 32)).astype(np.float32), "pick": rng.random((32, 32)).astype(np.float32)}
     cands = action_candidates(q, k, distance)
-    assert 1 <= len(cands) <= k
+    assert 1 <= len(cands) <= 2 * k
+    assert all(sum(p == prim for p, *_ in cands) <= k for prim in q)
     values = [v for *_, v in cands]
     assert values == sorted(values, reverse=True)
     for prim, r, c, v in cands:
@@ -155,7 +165,7 @@ def test_plateaus_give_spaced_deterministic_candidates():
     cands = action_candidates(q, k=4, min_distance_px=5)
     assert [(r, c) for _, r, c, _ in cands] == [(0, 0), (0, 5), (0, 10), (0, 15)]
     tie = {"push": peaks_map({(30, 30): 0.5}), "pick": peaks_map({(30, 30): 0.5})}
-    assert [p for p, *_ in action_candidates(tie, 2, 5)] == ["push", "pick"]  # ties: PRIMITIVES order
+    assert [p for p, *_ in action_candidates(tie, 2, 5)][:2] == ["push", "pick"]  # ties: PRIMITIVES order
 
 
 def test_candidates_reject_bad_maps():

@@ -1,0 +1,305 @@
+"""The actor loop: reset -> observe -> decide -> execute -> transition -> spool -> sender, episode after episode.
+
+    stats = run_actor(cfg, run_dir, env, replay_client, weights_source, stop_event)
+
+* Decisions use RoManNet through common.policy.InferenceEngine with the newest weights and the learner's
+  LAE rate. Both are swapped only between actions (polled right before a decision), never during one; the
+  version that chose an action is stamped on its transition. Until the learner's first weights arrive the
+  actor acts with its initial weights (RoManNet seeded with cfg.learner.seed: the learner's version 0) and
+  cfg.exploration.initial_rate until the first rate arrives, and says so once.
+* Every transition is encoded once; the bytes go to the spool (fsync'ed) before the sender thread sends
+  them, and into the episode's MCAP file. When the spool is full (replay server down for long) the actor
+  pauses before its next action, logs why once, and resumes when acknowledgements make room.
+* stop_event (SIGTERM/SIGINT in actor/main.py): the primitive under way finishes, its transition is
+  spooled and recorded, the MCAP file is finished, the sender gets actor.shutdown_flush_s to empty the
+  spool (the rest stays on disk for the next start), status.json says "stopped".
+* Episode ids are `ep<index>` with the index persisted in actors/<id>/state.json before the episode starts,
+  so a restarted actor never reuses an id (the replay key (actor_id, episode_id, step) stays unique) and
+  scene seeds follow from (cfg.seed, actor_id, index): reproducible, distinct per actor.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from romannet import __version__
+from romannet.common.action import pixel_to_position
+from romannet.common.config import Config
+from romannet.common.config_actor import ActorConfig
+from romannet.common.configbase import dumps_toml
+from romannet.common.interfaces import Env, Observation, ReplayClient, StepResult, WeightsSource
+from romannet.common.model import RoManNet
+from romannet.common.policy import InferenceEngine, decide
+from romannet.common.wire import TransitionMsg, encode_transition
+
+from .recorder import EpisodeRecorder
+from .sender import Sender
+from .spool import Spool
+from .stats import ActorStats, ideal_actions, write_status
+
+log = logging.getLogger(__name__)
+
+_PAUSE_POLL_S = 0.25  # how often a paused actor re-checks the spool and the stop event
+
+
+@dataclass(frozen=True)
+class ActorPaths:
+    """Where one actor keeps its files inside the run directory."""
+
+    root: Path  # runs/<run>/actors/<actor_id>
+    spool: Path
+    episodes: Path  # runs/<run>/episodes/<actor_id>
+
+    @property
+    def status(self) -> Path:
+        return self.root / "status.json"
+
+    @property
+    def state(self) -> Path:
+        return self.root / "state.json"
+
+    @classmethod
+    def of(cls, run_dir: str | Path, acfg: ActorConfig) -> ActorPaths:
+        run_dir = Path(run_dir)
+        root = run_dir / "actors" / acfg.actor_id
+        return cls(root, Path(acfg.spool_dir) if acfg.spool_dir else root / "spool",
+                   Path(acfg.mcap_dir) if acfg.mcap_dir else run_dir / "episodes" / acfg.actor_id)
+
+
+def actor_section(cfg: Config) -> ActorConfig:
+    """The root config's `actor` section (defaults where the root Config has none)."""
+    section = getattr(cfg, "actor", None)
+    return section if isinstance(section, ActorConfig) else ActorConfig()
+
+
+def episode_seed(seed: int, actor_id: str, index: int) -> int:
+    """Scene seed of an actor's episode `index`: reproducible, different for every actor and episode."""
+    return int(np.random.SeedSequence([seed, zlib.crc32(actor_id.encode()), index]).generate_state(1)[0])
+
+
+def _next_episode_index(path: Path) -> int:
+    """Take the next episode index from state.json and persist index + 1 before the episode starts."""
+    try:
+        index = int(json.loads(path.read_text(encoding="utf-8"))["next_episode"])
+    except (OSError, ValueError, KeyError, TypeError):
+        index = 0
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump({"next_episode": index + 1}, f)
+        f.flush()
+        os.fsync(f.fileno())  # a crash must not hand out the same episode id twice
+    os.replace(tmp, path)
+    return index
+
+
+class ActorLoop:
+    """State of one actor process; run_actor() is the way to use it."""
+
+    def __init__(self, cfg: Config, run_dir: str | Path, env: Env, replay_client: ReplayClient,
+                 weights_source: WeightsSource, stop_event: threading.Event, acfg: ActorConfig,
+                 engine: InferenceEngine | None = None):
+        self.cfg, self.acfg, self.env, self.weights, self.stop = cfg, acfg, env, weights_source, stop_event
+        self.run_dir = Path(run_dir)
+        self.paths = ActorPaths.of(run_dir, acfg)
+        self.paths.root.mkdir(parents=True, exist_ok=True)
+        self.spool = Spool(self.paths.spool, acfg.spool_max_items, acfg.spool_max_bytes, acfg.spool_fsync)
+        self.sender = Sender(self.spool, replay_client, acfg.insert_timeout_s, acfg.resend_backoff_initial_s,
+                             acfg.resend_backoff_max_s)
+        self.engine = engine or InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
+        self.stats = ActorStats(acfg.actor_id, cfg.run_id, explore_rate=cfg.exploration.initial_rate)
+        self.config_toml = dumps_toml(cfg)
+
+    # ------------------------------------------------------------------------------------ status
+    def write_status(self) -> None:
+        s = self.sender.stats()
+        status = self.stats.status()
+        status.update(spool_items=self.spool.items, spool_bytes=self.spool.bytes,
+                      spool_recovered=self.spool.recovered, sent=s.sent, acked=s.acked, accepted=s.accepted,
+                      duplicates=s.duplicates, rejected=s.rejected, send_failures=s.failures,
+                      server_reachable=s.reachable)
+        write_status(self.paths.status, status)
+
+    def limits_reached(self) -> bool:
+        a = self.acfg
+        return (a.max_actions > 0 and self.stats.actions >= a.max_actions) or \
+               (a.episodes > 0 and self.stats.episodes >= a.episodes)
+
+    # ------------------------------------------------------------------------ between actions only
+    def swap_policy(self) -> None:
+        """Take new weights / exploration rate, if any arrived (called between actions only)."""
+        new = self.weights.poll_weights()
+        if new is not None:
+            version, tensors = new
+            try:
+                self.engine.load_state(tensors)
+            except Exception as err:  # weights our model refuses: keep acting with the ones we have
+                log.error("weights v%d refused by the model (%s); keeping v%d", version, err,
+                          self.stats.weights_version)
+            else:
+                if self.stats.initial_weights:
+                    log.info("first weights from the learner: now acting with v%d", version)
+                self.stats.weights_version, self.stats.initial_weights = version, False
+        rate = self.weights.poll_exploration()
+        if rate is not None:
+            if not self.stats.explore_rate_received:
+                log.info("first exploration rate from the learner: %.3f (%s, v%d)", rate.value, rate.policy,
+                         rate.version)
+            self.stats.explore_rate, self.stats.explore_rate_received = float(rate.value), True
+
+    def wait_for_spool_room(self) -> bool:
+        """Pause while the spool is full; False if stopped while paused."""
+        if not self.spool.full():
+            return True
+        reason = (f"spool full: {self.spool.items} transitions / {self.spool.bytes} bytes not acknowledged "
+                  f"(bound {self.spool.max_items} items / {self.spool.max_bytes} bytes); is the replay "
+                  f"server reachable? last send error: {self.sender.stats().last_error or 'none'}")
+        log.warning("actor paused: %s", reason)
+        self.stats.paused, self.stats.pause_reason, self.stats.state = True, reason, "paused"
+        self.write_status()
+        started = time.monotonic()
+        while not self.spool.wait_for_room(_PAUSE_POLL_S):
+            if self.stop.is_set():
+                return False
+        log.info("actor resumed after %.1f s paused: the spool has room again (%d items)",
+                 time.monotonic() - started, self.spool.items)
+        self.stats.paused, self.stats.pause_reason, self.stats.state = False, "", "running"
+        self.write_status()
+        return True
+
+    # ----------------------------------------------------------------------------------- episodes
+    def run(self) -> ActorStats:
+        self.sender.start()
+        log.info("actor %s: acting with initial weights (v0, seed %d) until the learner's first weights "
+                 "arrive, exploration rate %.3f until its first rate arrives", self.acfg.actor_id,
+                 self.cfg.learner.seed, self.stats.explore_rate)
+        self.stats.state = "running"
+        self.write_status()
+        try:
+            while not self.stop.is_set() and not self.limits_reached():
+                self.run_episode()
+        finally:
+            self.stats.state = "stopping"
+            self.write_status()
+            self.sender.stop(self.acfg.shutdown_flush_s)
+            self.stats.state = "stopped"
+            self.write_status()
+            self.engine.close()
+            s = self.sender.stats()
+            log.info("actor %s stopped: %d actions, %d episodes (%d completed), picks %d/%d, weights versions "
+                     "used %d, acked %d, left in spool %d", self.acfg.actor_id, self.stats.actions,
+                     self.stats.episodes, self.stats.completed_episodes, self.stats.successful_picks,
+                     self.stats.picks, len(self.stats.versions_used), s.acked, self.spool.items)
+        return self.stats
+
+    def run_episode(self) -> None:
+        index = _next_episode_index(self.paths.state)
+        episode_id = f"ep{index:06d}"
+        seed = episode_seed(self.cfg.seed, self.acfg.actor_id, index)
+        # Exploration draws: reproducible per (seed, actor, episode), independent of the scene's generator.
+        rng = np.random.default_rng([self.cfg.seed, zlib.crc32(self.acfg.actor_id.encode()), index, 1])
+        obs = self.env.reset(seed)
+        self.stats.episode_id, self.stats.episode_step = episode_id, 0
+        recorder = None
+        if self.acfg.record_mcap:
+            recorder = EpisodeRecorder(
+                self.paths.episodes / f"{episode_id}.mcap",
+                {"run_id": self.cfg.run_id, "actor_id": self.acfg.actor_id, "episode_id": episode_id,
+                 "task": self.cfg.task.kind, "seed": seed, "weights_version_start": self.stats.weights_version,
+                 "initial_weights": self.stats.initial_weights, "explore_rate_start": self.stats.explore_rate,
+                 "romannet_version": __version__},
+                self.config_toml, self.acfg.mcap_chunk_bytes, self.acfg.mcap_compression,
+                self.acfg.record_camera, self.acfg.camera_color_format, self.acfg.jpeg_quality)
+        done_reason, ep_picks, ep_actions = "stopped", 0, 0
+        try:
+            if recorder is not None:
+                recorder.write_observation(obs, time.time_ns())
+            step = 0
+            while True:
+                if self.stop.is_set() or self.limits_reached() or not self.wait_for_spool_room():
+                    done_reason = "max_actions" if self.limits_reached() else "stopped"
+                    break
+                self.swap_policy()
+                primitive, result = self.act(obs, episode_id, step, rng, recorder)
+                ep_actions += 1
+                ep_picks += int(primitive == "pick" and result.success)
+                obs, step = result.observation, step + 1
+                if result.done:
+                    done_reason = result.done_reason
+                    break
+        finally:
+            efficiency = None
+            if done_reason == "done" and ep_actions:
+                ideal = ideal_actions(self.cfg.task.kind, ep_picks, self.cfg.task.goal_stack_height)
+                efficiency = min(1.0, ideal / ep_actions)
+            if recorder is not None:
+                recorder.close({"done_reason": done_reason, "steps": recorder.steps, "efficiency": efficiency,
+                                "weights_version_end": self.stats.weights_version})
+            if done_reason not in ("stopped", "max_actions"):
+                self.stats.record_episode_end(done_reason, efficiency)
+            else:
+                self.stats.last_done_reason = done_reason
+            self.write_status()
+            log.info("episode %s (seed %d) ended: %s after %d actions; weights v%d, rate %.3f, spool %d",
+                     episode_id, seed, done_reason, ep_actions, self.stats.weights_version,
+                     self.stats.explore_rate, self.spool.items)
+
+    def act(self, obs: Observation, episode_id: str, step: int, rng: np.random.Generator,
+            recorder: EpisodeRecorder | None) -> tuple[str, StepResult]:
+        """Decide, execute, then spool, record and count one action; returns (primitive, result)."""
+        version, rate = self.stats.weights_version, self.stats.explore_rate
+        start_ns = time.time_ns()
+        action, maps = decide(self.engine, obs.color_hm, obs.depth_hm, obs.holding, rate, rng,
+                              self.env.primitives, self.cfg.exploration, return_maps=True)
+        q_ranges = recorder.write_q_maps(maps.q, start_ns) if recorder is not None else {}
+        result = self.env.step(action)
+        end_ns = max(time.time_ns(), start_ns)
+        sim_seed = result.info.get("seed")
+        msg = TransitionMsg(
+            actor_id=self.acfg.actor_id, episode_id=episode_id, step=step, start_ns=start_ns, end_ns=end_ns,
+            task=self.cfg.task.kind, color_before=obs.color_hm, depth_before=obs.depth_hm,
+            color_after=result.observation.color_hm, depth_after=result.observation.depth_hm, action=action,
+            success=bool(result.success), progress_before=float(result.progress_before),
+            progress_after=float(result.progress_after), reward=float(result.reward), done=bool(result.done),
+            done_reason=result.done_reason if result.done else "", holding_before=bool(obs.holding),
+            holding_after=bool(result.observation.holding), policy_version=version, explore_rate=rate,
+            initial_priority=self.acfg.priority_for(result.reward),
+            sim_seed=int(sim_seed) if isinstance(sim_seed, int) and sim_seed >= 0 else None)
+        data = encode_transition(msg)
+        self.spool.put(data)  # durable before anything else: from here on it cannot be lost
+        self.stats.record_action(action.primitive, result.success, version)
+        if recorder is not None:
+            x, y, z = pixel_to_position(action.row, action.col, obs.depth_hm, self.cfg.workspace)
+            extras = {"step": step, "episode_id": episode_id, "primitive": action.primitive, "row": action.row,
+                      "col": action.col, "angle_rad": action.angle_rad, "q_value": action.q_value,
+                      "explored": action.explored, "position_m": [x, y, z], "success": result.success,
+                      "progress_before": result.progress_before, "progress_after": result.progress_after,
+                      "reward": result.reward, "done": result.done, "done_reason": result.done_reason,
+                      "detail": result.detail, "holding_before": obs.holding,
+                      "holding_after": result.observation.holding, "weights_version": version,
+                      "explore_rate": rate, "q_ranges": q_ranges, "info": result.info}
+            recorder.write_observation(result.observation, end_ns)
+            recorder.write_step(data, extras, end_ns)  # flushes the step's chunk, observation included
+        self.write_status()
+        return action.primitive, result
+
+
+def run_actor(cfg: Config, run_dir: str | Path, env: Env, replay_client: ReplayClient,
+              weights_source: WeightsSource, stop_event: threading.Event, actor_cfg: ActorConfig | None = None,
+              engine: InferenceEngine | None = None) -> ActorStats:
+    """Run the actor loop until stop_event is set or actor.max_actions / actor.episodes is reached.
+
+    actor_cfg defaults to cfg.actor; engine (for tests) defaults to one built from cfg.model. The caller
+    owns env, replay_client and weights_source (and closes them); the spool, sender and engine are closed here.
+    """
+    loop = ActorLoop(cfg, run_dir, env, replay_client, weights_source, stop_event,
+                     actor_cfg or actor_section(cfg), engine)
+    return loop.run()

@@ -1,0 +1,233 @@
+"""The actor loop in-process (real SimEnv, floating gripper, 64x64 heightmaps, in-process replay store) and
+`romannet actor` as a process against a real `romannet replay` process (SIGTERM -> exit 0, nothing lost)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from romannet.actor.recorder import count_steps
+from romannet.actor.service import ActorPaths, run_actor
+from romannet.actor.sim.env import SimEnv
+from romannet.actor.stats import read_status
+from romannet.common.config import Config, load_config
+from romannet.common.config_actor import ActorConfig
+from romannet.common.config_replay import ReplayConfig
+from romannet.common.model import RoManNet, state_dict_to_tensors
+from romannet.common.wire import ExplorationRateMsg
+from romannet.common.zenoh_session import free_port, make_config, open_session
+from romannet.replay.inprocess import InProcessReplayClient
+from romannet.replay.store import ReplayStore
+
+pytestmark = pytest.mark.timeout(120)
+
+# Small and fast: 64x64 heightmaps, a 160x120 camera (same field of view), tiny nets, short episodes.
+OVERRIDES = ["workspace.resolution_m=0.007", 'sim.robot="gripper"', "sim.num_objects=3", "sim.max_steps=3",
+             "model.channels=8", "model.residual_blocks=1", "camera.width_px=160", "camera.height_px=120",
+             "camera.fx_px=154.655", "camera.fy_px=154.655", "camera.cx_px=80.0", "camera.cy_px=60.0"]
+
+
+@pytest.fixture(scope="module")
+def cfg() -> Config:
+    return load_config(None, OVERRIDES)
+
+
+@pytest.fixture
+def store(tmp_path: Path):
+    s = ReplayStore(ReplayConfig(fsync=False, min_size_to_sample=1, snapshot_every_s=0.0,
+                                 snapshot_every_inserts=0), tmp_path / "replay")
+    yield s
+    s.close()
+
+
+class FakeWeights:
+    """Delivers weights `version` on the (after+1)-th poll (polls happen right before each decision) and an
+    exploration rate on the second poll."""
+
+    def __init__(self, cfg: Config, version: int, after: int):
+        self.tensors = state_dict_to_tensors(RoManNet(cfg.model, seed=123))
+        self.version, self.after, self.polls, self.rate_polls = version, after, 0, 0
+
+    def poll_weights(self):
+        self.polls += 1
+        return (self.version, self.tensors) if self.polls == self.after + 1 else None
+
+    def poll_exploration(self):
+        self.rate_polls += 1
+        return ExplorationRateMsg(1, 0.25, "lae") if self.rate_polls == 2 else None
+
+
+class NoWeights:
+    def poll_weights(self):
+        return None
+
+    def poll_exploration(self):
+        return None
+
+
+def _acfg(**kw) -> ActorConfig:
+    return ActorConfig(**{"actor_id": "a0", "spool_fsync": False, "insert_timeout_s": 1.0,
+                          "resend_backoff_initial_s": 0.05, "resend_backoff_max_s": 0.2, **kw})
+
+
+class RecordingClient(InProcessReplayClient):
+    """The in-process client, keeping every transition the store accepted (in insert order)."""
+
+    def __init__(self, store: ReplayStore):
+        super().__init__(store)
+        self.accepted: list = []
+
+    def insert(self, transition, timeout_s: float = 10.0):
+        ack = super().insert(transition, timeout_s)
+        if ack.status == "accepted":
+            self.accepted.append(transition)
+        return ack
+
+
+def test_loop_sends_stamps_versions_and_records(tmp_path: Path, cfg: Config, store: ReplayStore) -> None:
+    env = SimEnv.from_config(cfg)
+    weights = FakeWeights(cfg, version=7, after=4)
+    client = RecordingClient(store)
+    try:
+        stats = run_actor(cfg, tmp_path, env, client, weights, threading.Event(),
+                          actor_cfg=_acfg(max_actions=8))
+    finally:
+        env.close()
+    assert stats.actions == 8
+    keys = sorted(store._by_key, key=lambda k: (k[1], k[2]))
+    assert len(keys) == 8 and {k[0] for k in keys} == {"a0"}
+    per_episode: dict[str, list[int]] = {}
+    for _, episode, step in keys:
+        per_episode.setdefault(episode, []).append(step)
+    for steps in per_episode.values():
+        assert steps == list(range(len(steps)))  # steps from 0, none missing
+    transitions = client.accepted
+    assert [(t.episode_id, t.step) for t in transitions] == [k[1:] for k in keys]  # sent in order
+    # Swapped only between actions: the first 4 actions used v0, the rest v7 (an action boundary).
+    assert [t.policy_version for t in transitions] == [0] * 4 + [7] * 4
+    # The initial rate until the learner's first rate (second poll), then the learner's.
+    assert [t.explore_rate for t in transitions] == [0.5] + [0.25] * 7
+    assert all(t.task == "clutter" and t.sim_seed is not None for t in transitions)
+    # One MCAP file per episode with that episode's step count, finished (summary present).
+    paths = ActorPaths.of(tmp_path, _acfg())
+    files = sorted(paths.episodes.glob("*.mcap"))
+    assert [f.stem for f in files] == sorted(per_episode)
+    for f in files:
+        assert count_steps(f) == len(per_episode[f.stem])
+        with open(f, "rb") as fh:
+            reader = make_reader(fh)
+            assert reader.get_summary() is not None
+            meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        assert meta["romannet"]["actor_id"] == "a0" and "toml" in meta["config"]
+    status = read_status(paths.status)
+    assert status is not None and status["state"] == "stopped"
+    assert status["actions"] == 8 and status["acked"] == 8 and status["spool_items"] == 0
+    assert status["weights_version"] == 7 and status["weights_versions_used"] == 2
+    assert status["explore_rate"] == 0.25 and status["explore_rate_received"] and not status["paused"]
+    for field in ("episodes", "picks", "successful_picks", "completed_episodes", "efficiency_mean", "sent",
+                  "last_done_reason"):
+        assert field in status
+    # A restart continues the episode numbering: ids are never reused.
+    assert json.loads(paths.state.read_text())["next_episode"] == len(per_episode)
+
+
+class DownClient:
+    def insert(self, transition, timeout_s: float = 10.0):
+        raise TimeoutError("no reply (server down)")
+
+
+def test_pauses_when_spool_full_and_resends_after_restart(tmp_path: Path, cfg: Config,
+                                                         store: ReplayStore) -> None:
+    env = SimEnv.from_config(cfg)
+    stop = threading.Event()
+    acfg = _acfg(max_actions=20, spool_max_items=2, shutdown_flush_s=0.2, record_mcap=False)
+    status_path = ActorPaths.of(tmp_path, acfg).status
+    try:
+        thread = threading.Thread(target=run_actor, args=(cfg, tmp_path, env, DownClient(), NoWeights(), stop),
+                                  kwargs={"actor_cfg": acfg})
+        thread.start()
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (read_status(status_path) or {}).get("paused"):
+            time.sleep(0.05)
+        status = read_status(status_path)
+        assert status is not None and status["paused"] and status["actions"] == 2
+        assert "spool full" in status["pause_reason"] and status["server_reachable"] is False
+        stop.set()
+        thread.join(30)
+        assert not thread.is_alive()
+        # Restart against a reachable server: the two spooled transitions go first, then new ones.
+        stats = run_actor(cfg, tmp_path, env, InProcessReplayClient(store), NoWeights(), threading.Event(),
+                          actor_cfg=_acfg(max_actions=2, spool_max_items=2, record_mcap=False))
+    finally:
+        env.close()
+    assert stats.actions == 2
+    status = read_status(status_path)
+    assert status["spool_recovered"] == 2 and status["acked"] == 4 and status["spool_items"] == 0
+    assert len(store._by_key) == 4 and store.stats()["duplicates"] == 0
+    assert {k[1] for k in store._by_key} == {"ep000000", "ep000001"}  # the restart started a new episode
+
+
+def _wait_for(predicate, timeout_s: float, what: str, procs=()) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        for p in procs:
+            assert p.poll() is None, f"{what}: a process exited early with {p.returncode}"
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_cli_actor_against_replay_process(tmp_path: Path) -> None:
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    sets = [a for o in OVERRIDES + ["replay.fsync=false", "run_id=\"cli-test\""] for a in ("--set", o)]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    cli = [sys.executable, "-m", "romannet.cli"]
+    run_dir = tmp_path / "run"
+    replay = subprocess.Popen(cli + ["replay", "--dir", str(run_dir / "replay"), "--listen", endpoint] + sets,
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    actor = None
+    try:
+        actor = subprocess.Popen(cli + ["actor", "--run-dir", str(run_dir), "--actor-id", "sim-1", "--connect",
+                                        endpoint] + sets, env=env, stdout=subprocess.PIPE,
+                                 stderr=subprocess.STDOUT)
+        status_path = run_dir / "actors" / "sim-1" / "status.json"
+        _wait_for(lambda: ((read_status(status_path) or {}).get("acked") or 0) >= 3, 90,
+                  "3 acknowledged transitions", (replay, actor))
+        actor.send_signal(signal.SIGTERM)
+        out, _ = actor.communicate(timeout=60)
+        assert actor.returncode == 0, out.decode()[-3000:]
+        status = read_status(status_path)
+        assert status["state"] == "stopped" and status["spool_items"] == 0
+        assert status["acked"] == status["actions"]
+        files = sorted((run_dir / "episodes" / "sim-1").glob("*.mcap"))
+        assert files and sum(count_steps(f) for f in files) == status["actions"]
+        for f in files:
+            with open(f, "rb") as fh:
+                assert make_reader(fh).get_summary() is not None  # finished, also the interrupted one
+        with open_session(make_config(connect=[endpoint], listen=[])) as session:
+            from romannet.common.replay_client import ZenohReplayClient
+
+            server = ZenohReplayClient(session, "cli-test").stats(timeout_s=10)
+        assert server["size"] == status["actions"] and server["duplicates"] == 0
+        assert server["per_actor"]["sim-1"]["inserted"] == status["actions"]
+    finally:
+        for p in (actor, replay):
+            if p is not None and p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+                try:
+                    p.communicate(timeout=30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.communicate()
+    assert replay.returncode == 0
