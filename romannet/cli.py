@@ -18,15 +18,21 @@ from romannet.common.logsetup import setup_logging
 log = logging.getLogger("romannet.cli")
 
 EXAMPLES = {
+    "up": ("romannet up --actors 2 --max-actions 2000\n  romannet up --name demo --robot gripper --resolution 0.007 "
+           "--max-actions 60\n  romannet up --name demo --resume"),
     "info": "romannet info --json --set model.channels=32",
     "bench": ("romannet bench inference --json\n  romannet bench replay --json --inserts 2000 --repeats 200\n"
               "  romannet bench sim --json --actions 10 --robots arm,gripper\n"
-              "  romannet bench learner --json --batch-sizes 1,4,8 --repeats 10"),
+              "  romannet bench learner --json --batch-sizes 1,4,8 --repeats 10\n"
+              "  romannet bench system --json --actions 30"),
     "sim": "romannet sim snapshot --task stacking --seed 3 --out snapshot.png --action pick:112:90:30",
     "replay": "romannet replay --config configs/default.toml --dir runs/default/replay --listen tcp/127.0.0.1:7447",
     "learner": ("romannet learner --config configs/default.toml --run-dir runs/default/learner "
                 "--connect tcp/127.0.0.1:7447\n  romannet learner --run-dir runs/default/learner --resume "
                 "--connect tcp/127.0.0.1:7447"),
+    "actor": ("romannet actor --config configs/default.toml --run-dir runs/default --actor-id actor-0 "
+              "--connect tcp/127.0.0.1:7447\n  romannet actor --run-dir runs/default --actor-id actor-1 "
+              "--max-actions 50 --set workspace.resolution_m=0.007 --connect tcp/127.0.0.1:7447"),
 }
 
 
@@ -74,6 +80,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         sizes = tuple(int(b) for b in args.batch_sizes.split(",") if b.strip())
         result = run_learner_benchmark(batch_sizes=sizes, seed=args.seed, device=args.device, **_repeats(args))
+    elif args.what == "system":
+        from romannet.bench.system import run_system_benchmark
+
+        result = run_system_benchmark(actions_per_actor=args.actions, seed=args.seed, **_repeats(args))
     else:  # argparse choices make this unreachable; kept explicit for the error message
         raise SystemExit(f"unknown benchmark {args.what!r}")
     text = json.dumps(result, indent=None if args.json else 2)
@@ -119,6 +129,18 @@ def cmd_learner(args: argparse.Namespace) -> int:
     return run(args)
 
 
+def cmd_actor(args: argparse.Namespace) -> int:
+    from romannet.actor.main import run
+
+    return run(args)
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from romannet.up import run
+
+    return run(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="romannet",
@@ -136,22 +158,31 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=func)
         return p
 
+    p = verb("up", "run the whole fleet on this machine (replay server, learner, N simulated actors) "
+             "under supervision until --max-actions or Ctrl-C; everything goes to runs/<name>/", cmd_up)
+    from romannet.up import add_arguments as add_up_arguments  # light imports: --help stays fast
+
+    add_up_arguments(p)
+    _add_config_args(p)
+
     p = verb("info", "version, parameter count per net, torch threads and the resolved config", cmd_info)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _add_config_args(p)
 
     p = verb("bench", "run a benchmark and print one JSON object (results go in docs/benchmarks.md)", cmd_bench)
-    p.add_argument("what", choices=["inference", "replay", "sim", "learner"],
+    p.add_argument("what", choices=["inference", "replay", "sim", "learner", "system"],
                    help="inference: the actor's decision latency vs baselines; "
                         "replay: durable inserts/s, sample latency, recovery time over loopback Zenoh; "
                         "sim: simulator actions/s per task, ms per render, heightmap and primitive; "
-                        "learner: transitions trained/s per batch size vs the naive eager fp32 step")
+                        "learner: transitions trained/s per batch size vs the naive eager fp32 step; "
+                        "system: fleet actions/s for 1 and 2 gripper actors (`romannet up`), weights latency "
+                        "to 1 and 8 actors, share of actor time in sim/inference/encoding/transport")
     p.add_argument("--json", action="store_true", help="print compact JSON on one line")
     p.add_argument("--repeats", type=int, default=None,
                    help="timed repeats per measurement (median reported); default: each benchmark's own")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--inserts", type=int, default=2000, help="replay: transitions inserted (and recovered)")
-    p.add_argument("--actions", type=int, default=10, help="sim: actions per task and policy")
+    p.add_argument("--actions", type=int, default=10, help="sim: actions per task and policy; system: per actor")
     p.add_argument("--robots", default="arm,gripper", help="sim: comma-separated robot modes (arm, gripper)")
     p.add_argument("--batch-sizes", default="1,4,8", help="learner: comma-separated transitions per update")
     p.add_argument("--device", default="cpu", help="learner: torch device, e.g. cpu or cuda (when there is a GPU)")
@@ -183,6 +214,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue from the checkpoint in --run-dir (its config.toml unless --config is given)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to: the replay server or a router, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--zenoh-config", metavar="FILE.json5",
+                   help="Zenoh config file (default: peer mode on loopback, multicast scouting off)")
+
+    p = verb("actor", "act in the simulator with the newest weights, send every transition to the replay "
+             "server (spooled on disk until acknowledged) and record each episode to MCAP, until "
+             "SIGTERM/SIGINT or a limit", cmd_actor)
+    _add_config_args(p)
+    p.add_argument("--run-dir", required=True, metavar="DIR",
+                   help="the run directory: episodes/<actor-id>/*.mcap, actors/<actor-id>/ (spool, status.json)")
+    p.add_argument("--actor-id", default=None, metavar="ID",
+                   help="this actor's id (default: the config's actor.actor_id); unique within a run")
+    p.add_argument("--max-actions", type=int, default=None, metavar="N",
+                   help="stop after N actions (default: the config's actor.max_actions; 0 = no limit)")
+    p.add_argument("--episodes", type=int, default=None, metavar="N",
+                   help="stop after N finished episodes (default: the config's actor.episodes; 0 = no limit)")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7449 (repeatable)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to: the replay server or a router, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--zenoh-config", metavar="FILE.json5",

@@ -1,0 +1,290 @@
+"""The fleet's live progress: read what the components write and report it as one line.
+
+Sources (the launcher never imports component code, it reads their outputs):
+- actors: `<run>/actors/<actor_id>/status.json` (written atomically by each actor): actions, episodes,
+  picks, successful_picks, weights_version, explore_rate, spool_items, acked, paused, efficiency_last, ...
+- learner: the last row of `<run>/metrics.csv` (update, explore_rate, weights_version, replay_size).
+- replay: the server's stats query (size, inserts), asked by the launcher through a function it is given.
+
+On a terminal the line is redrawn in place about once a second; otherwise (a log file, CI) it is logged
+every `log_every_s` seconds, so logs stay readable.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+log = logging.getLogger(__name__)
+
+_CLEAR_LINE = "\r\033[K"
+
+
+def read_actor_statuses(run_dir: Path) -> dict[str, dict[str, Any]]:
+    """{actor_id: status} for every readable `actors/*/status.json` (a missing or torn file is skipped)."""
+    out: dict[str, dict[str, Any]] = {}
+    for path in sorted((run_dir / "actors").glob("*/status.json")):
+        try:
+            status = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(status, dict):
+            out[path.parent.name] = status
+    return out
+
+
+def read_last_metrics(csv_path: Path, tail_bytes: int = 16384) -> dict[str, str] | None:
+    """The last complete row of the learner's metrics.csv as {column: text}, or None if it has no rows.
+
+    Reads the header and only the file's tail: the CSV grows by one row per update."""
+    try:
+        with csv_path.open("rb") as fh:
+            header = fh.readline().decode("utf-8", "replace")
+            fh.seek(0, io.SEEK_END)
+            end = fh.tell()
+            fh.seek(max(len(header), end - tail_bytes))
+            tail = fh.read().decode("utf-8", "replace")
+    except OSError:
+        return None
+    pieces = tail.split("\n")
+    if not tail.endswith("\n"):
+        pieces = pieces[:-1]  # the row being written right now
+    lines = [ln for ln in pieces if ln.strip()]
+    if not header.strip() or not lines:
+        return None
+    names = next(csv.reader([header]))
+    values = next(csv.reader([lines[-1]]))
+    if len(values) != len(names) or values == names:
+        return None
+    return dict(zip(names, values, strict=True))
+
+
+def _num(value: Any) -> float | None:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        return None
+    return out if out == out else None  # NaN -> None
+
+
+# status.json counters that cover one actor process's life; the ledger adds up those of earlier processes.
+_COUNTERS = ("actions", "episodes", "picks", "successful_picks", "completed_episodes", "sent", "acked",
+             "accepted", "duplicates", "rejected")
+
+
+class ActorLedger:
+    """Totals per actor id across restarts of its process.
+
+    An actor's status.json counts the life of one process; when the supervisor restarts a crashed actor,
+    `retire(actor_id, status)` banks the dead process's last counts, and `merged()` adds them to whatever
+    the new process reports. A status still written by a retired pid counts as nothing new (the new
+    process has not written its own yet).
+    """
+
+    def __init__(self) -> None:
+        self.carried: dict[str, dict[str, int]] = {}
+        self._retired_pids: set[int] = set()
+
+    def retire(self, actor_id: str, status: dict[str, Any] | None) -> None:
+        if not status or status.get("pid") in self._retired_pids:
+            return
+        bank = self.carried.setdefault(actor_id, dict.fromkeys(_COUNTERS, 0))
+        for key in _COUNTERS:
+            bank[key] += int(_num(status.get(key)) or 0)
+        if isinstance(status.get("pid"), int):
+            self._retired_pids.add(status["pid"])
+
+    def merged(self, actor_id: str, status: dict[str, Any]) -> dict[str, Any]:
+        bank = self.carried.get(actor_id)
+        if bank is None:
+            return status
+        out = dict(status)
+        stale = status.get("pid") in self._retired_pids
+        for key in _COUNTERS:
+            out[key] = bank[key] + (0 if stale else int(_num(status.get(key)) or 0))
+        return out
+
+    def actions(self, actor_id: str) -> int:
+        return self.carried.get(actor_id, {}).get("actions", 0)
+
+
+class MovingRate:
+    """Success rate over (about) the last `window` attempts, from cumulative (attempts, successes) totals."""
+
+    def __init__(self, window: int = 50):
+        self.window = window
+        self._samples: deque[tuple[int, int]] = deque(maxlen=1000)
+
+    def add(self, attempts: int, successes: int) -> None:
+        if self._samples and attempts < self._samples[-1][0]:
+            self._samples.clear()  # totals went back (an actor restarted from scratch): start over
+        self._samples.append((attempts, successes))
+
+    def value(self) -> float | None:
+        if not self._samples:
+            return None
+        attempts, successes = self._samples[-1]
+        base = (0, 0)
+        for sample in self._samples:  # the newest sample at least `window` attempts back, else the start
+            if attempts - sample[0] >= self.window:
+                base = sample
+        n = attempts - base[0]
+        return (successes - base[1]) / n if n > 0 else None
+
+
+@dataclass
+class FleetSnapshot:
+    """What the progress line shows; also the launcher's final summary."""
+
+    elapsed_s: float = 0.0
+    actions: int = 0
+    episodes: int = 0  # finished, for any reason
+    completed_episodes: int = 0  # finished with the task done (the paper's completion)
+    picks: int = 0
+    successful_picks: int = 0
+    moving_pick_success: float | None = None
+    efficiency: float | None = None
+    updates: int | None = None
+    learner_explore_rate: float | None = None
+    replay_size: int | None = None
+    replay_inserts: int | None = None
+    acked: int = 0
+    spooled: int = 0
+    actors: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items()}
+
+
+class EpisodeEfficiency:
+    """Mean action efficiency over the fleet's last `window` completed episodes.
+
+    Actors report their last completed episode's efficiency and how many they completed; each time an
+    actor's count grows, its efficiency_last joins the window (an episode completed between two polls
+    of the same actor is missed, which a display can live with)."""
+
+    def __init__(self, window: int = 20):
+        self._values: deque[float] = deque(maxlen=window)
+        self._seen: dict[str, int] = {}
+
+    def update(self, actor_id: str, status: dict[str, Any]) -> None:
+        completed = int(_num(status.get("completed_episodes")) or 0)
+        last = _num(status.get("efficiency_last"))
+        if completed > self._seen.get(actor_id, 0) and last is not None:
+            self._values.append(last)
+        self._seen[actor_id] = completed
+
+    def value(self) -> float | None:
+        return sum(self._values) / len(self._values) if self._values else None
+
+
+class FleetProgress:
+    """Collects a FleetSnapshot from the run directory and the replay stats function."""
+
+    def __init__(self, run_dir: Path, replay_stats: Callable[[], dict[str, Any] | None] | None = None,
+                 pick_window: int = 50, ledger: ActorLedger | None = None):
+        self.run_dir = run_dir
+        self.ledger = ledger or ActorLedger()
+        self._replay_stats = replay_stats
+        self._picks = MovingRate(pick_window)
+        self._efficiency = EpisodeEfficiency()
+        self._started = time.monotonic()
+
+    def snapshot(self) -> FleetSnapshot:
+        snap = FleetSnapshot(elapsed_s=time.monotonic() - self._started)
+        snap.actors = {aid: self.ledger.merged(aid, s) for aid, s in read_actor_statuses(self.run_dir).items()}
+        for aid, status in snap.actors.items():
+            snap.actions += int(_num(status.get("actions")) or 0)
+            snap.episodes += int(_num(status.get("episodes")) or 0)
+            snap.completed_episodes += int(_num(status.get("completed_episodes")) or 0)
+            snap.picks += int(_num(status.get("picks")) or 0)
+            snap.successful_picks += int(_num(status.get("successful_picks")) or 0)
+            snap.acked += int(_num(status.get("acked")) or 0)
+            snap.spooled += int(_num(status.get("spool_items")) or 0)
+            self._efficiency.update(aid, status)
+        self._picks.add(snap.picks, snap.successful_picks)
+        snap.moving_pick_success = self._picks.value()
+        snap.efficiency = self._efficiency.value()
+        row = read_last_metrics(self.run_dir / "metrics.csv")
+        if row is not None:
+            updates = _num(row.get("update"))
+            snap.updates = int(updates) if updates is not None else None
+            snap.learner_explore_rate = _num(row.get("explore_rate"))
+        if self._replay_stats is not None:
+            stats = self._replay_stats()
+            if stats:
+                snap.replay_size = int(stats.get("size", 0))
+                snap.replay_inserts = int(stats.get("inserts", 0))
+        return snap
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.0f}%"
+
+
+def format_line(snap: FleetSnapshot, max_actions: int | None = None) -> str:
+    """One line: actions, pick success, efficiency, episodes, updates, replay, LAE, weights per actor."""
+    actions = f"{snap.actions}/{max_actions}" if max_actions else str(snap.actions)
+    lae = "-" if snap.learner_explore_rate is None else f"{snap.learner_explore_rate:.2f}"
+    per_actor = " ".join(
+        f"{aid}:v{s.get('weights_version', '-')}" + (" PAUSED" if s.get("paused") else "")
+        for aid, s in sorted(snap.actors.items()))
+    return (f"[{snap.elapsed_s:6.0f}s] actions {actions} | pick {_pct(snap.moving_pick_success)} "
+            f"(moving) | eff {_pct(snap.efficiency)} | episodes {snap.episodes} "
+            f"({snap.completed_episodes} done) | updates "
+            f"{'-' if snap.updates is None else snap.updates} | replay "
+            f"{'-' if snap.replay_size is None else snap.replay_size} | spool {snap.spooled} | LAE {lae} | "
+            f"weights {per_actor or '-'}")
+
+
+class ProgressDisplay:
+    """Shows format_line(snapshot): redrawn in place on a TTY, and logged every log_every_s either way (on
+    a TTY only to the log files: ClearLineFilter keeps those records off the console it redraws)."""
+
+    def __init__(self, stream: TextIO | None = None, log_every_s: float = 30.0, tty: bool | None = None):
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = self.stream.isatty() if tty is None else tty
+        self.log_every_s = log_every_s
+        self._next_log = 0.0
+        self._drawn = False
+
+    def show(self, line: str) -> None:
+        if self.tty:
+            self.stream.write(_CLEAR_LINE + line[:400])
+            self.stream.flush()
+            self._drawn = True
+        now = time.monotonic()
+        if now >= self._next_log:
+            log.info("%s", line, extra={"progress_line": True})
+            self._next_log = now + self.log_every_s
+
+    def clear(self) -> None:
+        """Erase the in-place line (before a log message, and at the end)."""
+        if self.tty and self._drawn:
+            self.stream.write(_CLEAR_LINE)
+            self.stream.flush()
+            self._drawn = False
+
+
+class ClearLineFilter(logging.Filter):
+    """For console handlers: a log message never lands in the middle of the progress line, and on a TTY
+    the periodic progress records stay off the console (the line itself is there)."""
+
+    def __init__(self, display: ProgressDisplay):
+        super().__init__()
+        self._display = display
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if self._display.tty and getattr(record, "progress_line", False):
+            return False
+        self._display.clear()
+        return True

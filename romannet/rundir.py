@@ -1,0 +1,97 @@
+"""The run directory of `romannet up`: validate the arguments, resolve the config, guard a resume.
+
+`prepare_run(args)` creates `<runs-dir>/<name>/` and writes its config.toml before any child starts (every
+child reads that file). A fresh run refuses a directory that holds anything; `--resume` reuses the saved
+config.toml (plus --set and flag overrides), refuses to change the workspace (the replay holds
+transitions of that size) or to share the directory with a launcher that is still running, and warns
+about actors' spools that the requested --actors would leave unsent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from romannet.common.errors import RomannetError
+
+if TYPE_CHECKING:
+    from romannet.common.config import Config
+
+log = logging.getLogger("romannet.up")
+
+
+def _flag_overrides(args: argparse.Namespace) -> list[str]:
+    out = []
+    if args.task is not None:
+        out.append(f'task.kind="{args.task}"')
+    if args.goal_height is not None:
+        out.append(f"task.goal_stack_height={args.goal_height}")
+    if args.resolution is not None:
+        out.append(f"workspace.resolution_m={args.resolution!r}")
+    if args.robot is not None:
+        out.append(f'sim.robot="{args.robot}"')
+    return out
+
+
+def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
+    """Validate the arguments, create the run directory and write its config.toml (before any child)."""
+    from romannet.common.config import load_config
+    from romannet.common.configbase import write_toml
+
+    if args.actors < 1:
+        raise RomannetError(f"--actors {args.actors}: at least one actor is needed")
+    if args.max_actions < 0 or (0 < args.max_actions < args.actors):
+        raise RomannetError(f"--max-actions {args.max_actions}: use 0 (no limit) or at least one action per "
+                            f"actor (>= {args.actors})")
+    name = args.name or time.strftime("run-%Y%m%d-%H%M%S")
+    if not all(c.isalnum() or c in "-_" for c in name) or not name:
+        raise RomannetError(f"--name {name!r}: use letters, digits, '-' and '_' (it is the run id in Zenoh keys)")
+    run_dir = Path(args.runs_dir) / name
+    saved = run_dir / "config.toml"
+    overrides = [*args.overrides, *_flag_overrides(args), f'run_id="{name}"']
+    if args.resume:
+        if not saved.is_file():
+            raise RomannetError(f"--resume: {saved} does not exist (is --name {name} a run in {args.runs_dir}?)")
+        if args.config is not None:
+            raise RomannetError("--resume uses the run's saved config.toml; change it with --set, not --config")
+        _check_not_running(run_dir)
+        _warn_left_spools(run_dir, args.actors)
+        before = load_config(saved)
+        cfg = load_config(saved, overrides)
+        if cfg.workspace != before.workspace:
+            raise RomannetError("--resume cannot change the workspace or --resolution: the replay holds "
+                                f"{before.workspace.height_px}x{before.workspace.width_px} transitions")
+    else:
+        if run_dir.exists() and any(run_dir.iterdir()):
+            raise RomannetError(f"{run_dir} already exists: pass --resume to continue that run, or another --name")
+        cfg = load_config(args.config, overrides)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_toml(cfg, saved)
+    return run_dir, cfg
+
+
+def _check_not_running(run_dir: Path) -> None:
+    """Refuse to resume a run whose launcher is still alive (two fleets would share one directory)."""
+    try:
+        pid = int(json.loads((run_dir / "pids.json").read_text())["launcher"])
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except (OSError, ValueError, KeyError, TypeError):
+        return
+    if pid != os.getpid() and b"romannet" in cmdline:
+        raise RomannetError(f"{run_dir} is in use by a running `romannet up` (pid {pid}); stop it first")
+
+
+def _warn_left_spools(run_dir: Path, actors: int) -> None:
+    """Actors beyond --actors are not started: say so if their spools still hold unsent transitions."""
+    for spool in sorted((run_dir / "actors").glob("*/spool")):
+        actor_id = spool.parent.name
+        index = actor_id.removeprefix("actor-")
+        pending = sum(1 for p in spool.iterdir() if p.is_file()) if spool.is_dir() else 0
+        if index.isdigit() and int(index) >= actors and pending:
+            log.warning("%s is not started (--actors %d) but its spool holds %d file(s) not yet acknowledged: "
+                        "resume with --actors %d to send them", actor_id, actors, pending, int(index) + 1)

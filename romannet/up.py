@@ -1,0 +1,347 @@
+"""`romannet up`: the whole fleet on one machine (replay server, learner, N actors) until done or Ctrl-C.
+
+    romannet up --actors 2 --max-actions 2000
+    romannet up --name run-1 --resume
+
+Each component runs as its own process (`python -m romannet.cli <verb> ...`: a fresh interpreter, so no
+Zenoh session crosses a fork), with its own Zenoh session in peer mode on loopback and multicast
+scouting off: the replay server and the learner listen on free loopback ports and every process connects
+to those, so discovery needs no multicast. This module only starts processes and reads their outputs;
+it never imports actor, learner or replay code.
+
+The run directory `<runs-dir>/<name>/` holds (config.toml is written first, before any child starts):
+
+    config.toml           the resolved config every child reads (run_id = the run's name)
+    launcher.log          this launcher's log; logs/<child>.log each child's output
+    pids.json             the launcher's and each child's current pid
+    replay/               the replay server's log segments and snapshots
+    checkpoints/ metrics.csv tensorboard/ learning_curves.png    the learner's
+    actors/<id>/status.json  episodes/<id>/*.mcap                 each actor's
+    summary.json          totals at exit
+
+Stopping (Ctrl-C, SIGTERM, SIGHUP, or every actor reaching its share of --max-actions): actors first
+(they finish the primitive under way, flush spool and MCAP), then the learner (checkpoint), then the
+replay server (snapshot); each gets --stop-timeout seconds before SIGKILL. A second Ctrl-C kills the rest
+at once. Children sit in their own process groups and get SIGTERM if the launcher dies
+(romannet/supervisor.py), so none outlives it. Exit code 0 when every child stopped cleanly (exit 0),
+1 if the supervisor gave up on a crash-looping child or a child's last exit was not clean (a crash, or
+SIGKILL after the timeout), 2 for bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from .progress import (
+    ActorLedger,
+    ClearLineFilter,
+    FleetProgress,
+    FleetSnapshot,
+    ProgressDisplay,
+    format_line,
+    read_actor_statuses,
+)
+from .rundir import prepare_run
+from .supervisor import ChildSpec, RestartPolicy, Supervisor
+
+if TYPE_CHECKING:
+    from romannet.common.config import Config
+
+log = logging.getLogger("romannet.up")
+
+# Stop ranks: lower stops first.
+ACTOR_RANK, LEARNER_RANK, REPLAY_RANK = 0, 1, 2
+STAGE_TIMEOUT_S = 180.0  # how long a stage of the start-up may take to come alive before the next starts
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The `up` verb's flags (romannet/cli.py adds --config/--set). This module imports only the standard
+    library at the top, so building the CLI parser stays fast."""
+    p.add_argument("--name", help="run name: the directory <runs-dir>/<name> and the run id of every Zenoh "
+                   "key (default: run-<date>-<time>)")
+    p.add_argument("--runs-dir", default="runs", metavar="DIR", help="where run directories live (default: runs)")
+    p.add_argument("--task", choices=["clutter", "arrangement", "stacking"], help="task (default: the config's, "
+                   "clutter)")
+    p.add_argument("--goal-height", type=int, metavar="N", help="stacking: cubes in the goal stack (2..5)")
+    p.add_argument("--actors", type=int, default=2, metavar="N", help="simulated actors (default: 2)")
+    p.add_argument("--max-actions", type=int, default=0, metavar="N",
+                   help="total actions over the whole fleet, split evenly between the actors; the launcher "
+                   "stops everything cleanly when every actor has done its share (default: 0 = until Ctrl-C)")
+    p.add_argument("--resolution", type=float, metavar="M_PER_PX", help="heightmap resolution in metres per "
+                   "pixel over the 0.448 m workspace: 0.002 -> 224x224 (default), 0.007 -> 64x64")
+    p.add_argument("--robot", choices=["arm", "gripper"], help="simulated robot: the Panda arm (default) or "
+                   "a floating gripper (faster)")
+    p.add_argument("--resume", action="store_true", help="restart every component from the run directory: "
+                   "the learner from its checkpoint, the replay from its log, actors resend their spools")
+    p.add_argument("--stop-timeout", type=float, default=60.0, metavar="S",
+                   help="seconds each stage may take to stop cleanly before SIGKILL (default: 60)")
+    p.add_argument("--progress-every", type=float, default=30.0, metavar="S",
+                   help="seconds between progress lines when stderr is not a terminal (default: 30)")
+
+
+def split_actions(total: int, actors: int) -> list[int]:
+    """total split into `actors` near-equal shares (the first ones take the remainder); 0 = unlimited."""
+    if total <= 0:
+        return [0] * actors
+    base, extra = divmod(total, actors)
+    return [base + (1 if i < extra else 0) for i in range(actors)]
+
+
+def build_specs(run_dir: Path, cfg: Config, args: argparse.Namespace, replay_ep: str, learner_ep: str,
+                ledger: ActorLedger) -> list[ChildSpec]:
+    """The replay server, the learner and the actors as supervised children.
+
+    An actor's --max-actions counts the actions of its process; a restarted actor gets what is left of
+    its share (ledger: what its earlier processes did), so the fleet's total stays --max-actions."""
+    base = [sys.executable, "-m", "romannet.cli"]
+    level = logging.getLevelName(logging.getLogger().getEffectiveLevel())
+    if isinstance(level, str):
+        base += ["--log-level", level]
+    config = str(run_dir / "config.toml")
+    logs = run_dir / "logs"
+    stop_s = args.stop_timeout
+
+    def learner_argv() -> list[str]:
+        # A (re)start over a checkpoint must resume it: the learner refuses to start fresh over one.
+        resume = ["--resume"] if (run_dir / "checkpoints" / "LATEST").is_file() else []
+        return [*base, "learner", "--config", config, "--run-dir", str(run_dir), "--listen", learner_ep,
+                "--connect", replay_ep, *resume]
+
+    specs = [
+        ChildSpec("replay", [*base, "replay", "--config", config, "--dir", str(run_dir / "replay"),
+                             "--listen", replay_ep], stop_rank=REPLAY_RANK, restart="always",
+                  stop_timeout_s=stop_s, log_path=logs / "replay.log"),
+        ChildSpec("learner", learner_argv, stop_rank=LEARNER_RANK, restart="always", stop_timeout_s=stop_s,
+                  log_path=logs / "learner.log"),
+    ]
+    for i, share in enumerate(split_actions(args.max_actions, args.actors)):
+        actor_id = f"actor-{i}"
+
+        def actor_argv(actor_id: str = actor_id, share: int = share) -> list[str]:
+            argv = [*base, "actor", "--config", config, "--run-dir", str(run_dir), "--actor-id", actor_id,
+                    "--connect", replay_ep, "--connect", learner_ep]
+            if share:  # at least 1: a process that crashed after its last action still has to flush
+                argv += ["--max-actions", str(max(1, share - ledger.actions(actor_id)))]
+            return argv
+
+        specs.append(ChildSpec(actor_id, actor_argv, stop_rank=ACTOR_RANK, restart="on-failure",
+                               stop_timeout_s=stop_s, log_path=logs / f"{actor_id}.log"))
+    return specs
+
+
+class _ReplayStatsPoller:
+    """Asks the replay server for its stats every period_s on a thread of its own, so an unreachable
+    server (a query waits out its timeout) never stalls supervision; `latest()` never blocks."""
+
+    def __init__(self, client: Any, period_s: float = 2.0, timeout_s: float = 1.5):
+        self._client, self._period_s, self._timeout_s = client, period_s, timeout_s
+        self._latest: dict[str, Any] | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="replay-stats", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._latest = self._client.stats(timeout_s=self._timeout_s)
+            except Exception as exc:  # a replay restarting or stopping: keep the last known numbers
+                log.debug("replay stats: %s", exc)
+            self._stop.wait(self._period_s)
+
+    def latest(self) -> dict[str, Any] | None:
+        return self._latest
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(self._timeout_s + 5.0)
+
+
+class _Signals:
+    """Counts SIGINT/SIGTERM/SIGHUP: the first asks for a clean stop, the second for SIGKILL of the rest."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._previous = {s: signal.signal(s, self._on) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+
+    def _on(self, signum: int, _frame: object) -> None:
+        self.count += 1
+        if self.count == 1:
+            log.info("received %s: stopping cleanly (actors, learner, replay; again to kill at once)",
+                     signal.Signals(signum).name)
+        else:
+            log.warning("received %s again: killing what is left", signal.Signals(signum).name)
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+def _attach_log_file(path: Path) -> logging.Handler:
+    handler = logging.FileHandler(path)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logging.getLogger().addHandler(handler)
+    return handler
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the fleet for parsed CLI arguments (romannet/cli.py); returns the exit code."""
+    from romannet.common.keys import RunKeys
+    from romannet.common.replay_client import ZenohReplayClient
+    from romannet.common.zenoh_session import free_port, make_config, open_session, wait_for_liveliness
+
+    run_dir, cfg = prepare_run(args)
+    file_handler = _attach_log_file(run_dir / "launcher.log")
+    display = ProgressDisplay(log_every_s=args.progress_every)
+    console = [h for h in logging.getLogger().handlers if isinstance(h, logging.StreamHandler)
+               and not isinstance(h, logging.FileHandler)]
+    clear = ClearLineFilter(display)
+    for h in console:
+        h.addFilter(clear)
+    replay_ep, learner_ep = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
+    log.info("run %s in %s (%s task, %dx%d px, %s robot, %d actor(s), max actions %s%s); replay on %s, "
+             "learner on %s", cfg.run_id, run_dir, cfg.task.kind, cfg.workspace.height_px, cfg.workspace.width_px,
+             cfg.sim.robot, args.actors, args.max_actions or "unlimited", ", resumed" if args.resume else "",
+             replay_ep, learner_ep)
+    ledger = ActorLedger()
+
+    def on_exit(name: str, _code: int) -> None:
+        if sup.children[name].spec.stop_rank == ACTOR_RANK:  # bank its counts before a restart resets them
+            ledger.retire(name, read_actor_statuses(run_dir).get(name))
+
+    pids: dict[str, int] = {}
+
+    def on_start(name: str, pid: int) -> None:  # pids.json: which process is which, for people and tests
+        pids[name] = pid
+        tmp = run_dir / "pids.json.tmp"
+        tmp.write_text(json.dumps({"launcher": os.getpid(), **pids}, indent=1) + "\n")
+        os.replace(tmp, run_dir / "pids.json")
+
+    sup = Supervisor(build_specs(run_dir, cfg, args, replay_ep, learner_ep, ledger), RestartPolicy(),
+                     on_exit=on_exit, on_start=on_start)
+    signals = _Signals()
+    started = time.monotonic()
+    outcome = "stopped"
+    final: dict[str, Any] | None = None
+    progress = FleetProgress(run_dir, ledger=ledger)
+    try:
+        with open_session(make_config(listen=[], connect=[replay_ep, learner_ep])) as session:
+            client = ZenohReplayClient(session, cfg.run_id)
+            poller = _ReplayStatsPoller(client)
+            try:
+                progress = FleetProgress(run_dir, poller.latest, ledger=ledger)
+                keys = RunKeys(cfg.run_id)
+                ready = {"replay": lambda: client.wait_until_ready(0.5),
+                         "learner": lambda: wait_for_liveliness(session, keys.learner_alive, 0.5)}
+                outcome = _supervise(sup, ready, signals, progress, display, args.max_actions)
+                display.clear()
+                sup.stop_rank(ACTOR_RANK, hurry=lambda: signals.count > 1)
+                sup.stop_rank(LEARNER_RANK, hurry=lambda: signals.count > 1)
+                final = _final_stats(client, sup)
+            finally:
+                poller.close()
+                sup.stop_all(hurry=lambda: signals.count > 1)
+    except BaseException:
+        sup.kill_all()  # the launcher itself failed: leave no child behind
+        raise
+    finally:
+        signals.restore()
+        display.clear()
+        for h in console:
+            h.removeFilter(clear)
+    _summary(run_dir, progress.snapshot(), final, sup, outcome, time.monotonic() - started)
+    logging.getLogger().removeHandler(file_handler)
+    file_handler.close()
+    unclean = {n: c.last_exit for n, c in sup.children.items() if c.last_exit not in (None, 0)}
+    if unclean:
+        log.warning("not every child stopped cleanly: %s (see %s)", unclean, run_dir / "logs")
+    return 1 if sup.gave_up or unclean else 0
+
+
+def _supervise(sup: Supervisor, ready: dict[str, Callable[[], bool]], signals: _Signals,
+               progress: FleetProgress, display: ProgressDisplay, max_actions: int) -> str:
+    """Start the fleet and watch it until it is done, asked to stop, or a child crash-loops."""
+    # In stages, each waiting (bounded) for the previous one's liveliness token: the replay, the learner,
+    # then the actors. All of them cope with a peer that is not there yet, but actors that start first
+    # spend their first actions on the initial weights, and a 2-core box starts faster when the
+    # interpreters do not all import torch at the same moment.
+    for name in ("replay", "learner"):
+        sup.start(name)
+        deadline = time.monotonic() + STAGE_TIMEOUT_S
+        while not ready[name]():
+            sup.poll()
+            if signals.count:
+                return "stopped_by_signal"
+            if sup.gave_up:
+                return f"gave_up_on_{sup.gave_up[0]}"
+            if time.monotonic() > deadline:
+                log.warning("%s not ready after %.0f s: starting the rest anyway", name, STAGE_TIMEOUT_S)
+                break
+    sup.start_all([n for n, c in sup.children.items() if c.spec.stop_rank == ACTOR_RANK])
+    actors = [n for n, c in sup.children.items() if c.spec.stop_rank == ACTOR_RANK]
+    next_draw = 0.0
+    while True:
+        sup.poll()
+        if signals.count:
+            return "stopped_by_signal"
+        if sup.gave_up:
+            return f"gave_up_on_{sup.gave_up[0]}"
+        if actors and all(sup.children[a].state == "done" for a in actors):
+            log.info("every actor finished its share of --max-actions: stopping the learner and the replay")
+            return "max_actions_reached"
+        now = time.monotonic()
+        if now >= next_draw:
+            display.show(format_line(progress.snapshot(), max_actions or None))
+            next_draw = now + 1.0
+        time.sleep(0.2)
+
+
+def _final_stats(client: Any, sup: Supervisor) -> dict[str, Any] | None:
+    """The replay's stats once actors and learner are stopped (nothing more will arrive)."""
+    if not sup.children["replay"].alive():
+        return None
+    try:
+        return client.stats(timeout_s=10.0)
+    except Exception as exc:  # a replay that is restarting right now: the summary says so
+        log.warning("could not read the replay's final stats: %s", exc)
+        return None
+
+
+def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, sup: Supervisor, outcome: str,
+             elapsed_s: float) -> dict[str, Any]:
+    """Log the totals and write them to summary.json (atomically)."""
+    summary = {
+        "run_dir": str(run_dir), "outcome": outcome, "elapsed_s": round(elapsed_s, 1),
+        "actions": snap.actions, "episodes": snap.episodes, "completed_episodes": snap.completed_episodes,
+        "pick_success": snap.successful_picks / snap.picks if snap.picks else None,
+        "efficiency": snap.efficiency, "learner_updates": snap.updates,
+        "learner_explore_rate": snap.learner_explore_rate, "acked": snap.acked, "spooled": snap.spooled,
+        "replay_size": replay.get("size") if replay else snap.replay_size,
+        "replay_inserts": replay.get("inserts") if replay else snap.replay_inserts,
+        "replay_duplicates": replay.get("duplicates") if replay else None,
+        "restarts": sup.crashes, "gave_up": sup.gave_up,
+        "exit_codes": {n: c.last_exit for n, c in sup.children.items()},
+        "actors": {aid: {k: s.get(k) for k in ("actions", "episodes", "completed_episodes", "picks",
+                                                "successful_picks", "weights_version", "explore_rate",
+                                                "sent", "acked", "spool_items", "last_done_reason")}
+                   for aid, s in snap.actors.items()},
+    }
+    tmp = run_dir / "summary.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=2) + "\n")
+    os.replace(tmp, run_dir / "summary.json")
+    pick = "-" if summary["pick_success"] is None else f"{100 * summary['pick_success']:.1f}%"
+    log.info("run %s %s after %.0f s: %d actions, %d episodes (%d completed), pick success %s, %s learner "
+             "updates, replay holds %s (acked by actors: %d, still spooled: %d), %d restart(s); summary in %s",
+             run_dir.name, outcome.replace("_", " "), elapsed_s, snap.actions, snap.episodes,
+             snap.completed_episodes, pick, snap.updates if snap.updates is not None else 0,
+             summary["replay_size"], snap.acked, snap.spooled, sup.crashes, run_dir / "summary.json")
+    return summary
