@@ -1,15 +1,20 @@
 """`romannet bench replay`: the replay server over loopback Zenoh, measured end to end.
 
-A real `romannet replay` process (fsync on) serves a fresh directory; this process plays actors and a
-learner. Reported (medians and ratios from this one run; the 2-core box drifts):
-- durable insert throughput of `clients` concurrent actors (each waits for its ack): transitions/s, MB/s;
-- sample round trip p50/p99 for batch 1 and 8 (query to reply bytes; the learner's PNG decode, which
-  runs on the learner, is reported separately);
+Per workload of 224x224 RGB-D transitions (bench/replay_workloads.py: "sim", real simulator transitions;
+"camera_noise", synthetic scenes with camera noise, ~4x larger), a real `romannet replay` process (fsync
+on) serves a fresh directory and this process plays actors and a learner. Reported per workload (medians
+and ratios from this one run; the 2-core box drifts):
+- durable insert throughput of `clients` concurrent actors (each waits for its ack): transitions/s, MB/s,
+  insert latency p50/p99, CPU ms per insert in the server and in this (client) process, inserts per
+  fsync (the group commit), and other_load_cores: CPU time the machine spent on anything else meanwhile
+  (other processes, hypervisor steal), in cores: this box is shared, and throughput falls as it rises;
+- sample round trip p50/p99 for batch 1 and 8 (ZenohReplayClient.sample_encoded: query to checked reply
+  bytes; the learner's PNG decode, which runs on the learner, is reported separately);
 - bytes on disk per stored transition (log segments + snapshot);
 - recovery time per 10,000 transitions: opening the store from a log with no snapshot (the kill -9 worst
   case) in this process, after the server was killed;
 - the server's CPU time per batch-1 sample request as a share of one learner step, where a learner step
-  is forward + backward of one RoManNet net (GRConvNet) at batch 1, 224x224, measured here.
+  is forward + backward of one RoManNet net (GRConvNet) at batch 1, 224x224, measured here once.
 Targets (issue 4): >= 500 inserts/s, p99 <= 20 ms, <= 5 s per 10k, < 10 %.
 """
 
@@ -28,12 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
-from romannet.common import romannet_pb2 as pb
 from romannet.common import wire
-from romannet.common.action import Action
-from romannet.common.imagecodec import units_to_depth_m
 from romannet.common.replay_client import ZenohReplayClient
-from romannet.common.zenoh_session import free_port, make_config, open_session, query_one
+from romannet.common.zenoh_session import free_port, make_config, open_session
+
+from .replay_workloads import WORKLOADS, distinct_payloads
 
 log = logging.getLogger(__name__)
 
@@ -41,51 +45,20 @@ TARGETS = {"inserts_per_s": 500.0, "sample_p99_ms": 20.0, "recovery_s_per_10k": 
 _RUN_ID = "bench"
 
 
-def synthetic_heightmaps(seed: int, side_px: int = 224) -> tuple[np.ndarray, np.ndarray]:
-    """A tabletop-like scene: grey floor, 8 coloured boxes 2-10 cm tall, camera-like noise (sigma 3 levels
-    of colour, 0.5 mm of depth), so PNG sizes are realistic (random pixels would not compress at all)."""
-    rng = np.random.default_rng(seed)
-    color = np.full((side_px, side_px, 3), (90, 90, 95), np.float32)
-    depth = np.zeros((side_px, side_px), np.float32)
-    for _ in range(8):
-        y, x = rng.integers(0, side_px - 30, 2)
-        s = int(rng.integers(10, 30))
-        color[y:y + s, x:x + s] = rng.integers(0, 256, 3)
-        depth[y:y + s, x:x + s] = rng.uniform(0.02, 0.10)
-    color = np.clip(color + rng.normal(0, 3, color.shape), 0, 255).astype(np.uint8)
-    depth = np.clip(depth + rng.normal(0, 5e-4, depth.shape), 0, 0.6)
-    return color, units_to_depth_m(np.round(depth / 1e-5).astype(np.uint16))
-
-
-def encoded_transitions(count: int, scenes: int = 8, seed: int = 0) -> list[bytes]:
-    """`count` distinct encoded transitions (unique actor/episode/step) built from `scenes` scenes; only
-    the scalar fields are re-serialised per item, so this takes seconds, not count x 25 ms of PNG coding."""
-    protos = []
-    for k in range(scenes):
-        cb, db = synthetic_heightmaps(seed + 2 * k)
-        ca, da = synthetic_heightmaps(seed + 2 * k + 1)
-        msg = wire.TransitionMsg(
-            actor_id=f"bench-{k}", episode_id="ep-0", step=0, start_ns=1, end_ns=2, task="clutter",
-            color_before=cb, depth_before=db, color_after=ca, depth_after=da,
-            action=Action("pick", 100, 120, 0.5, 0.7, explored=False), success=True, progress_before=0.1,
-            progress_after=0.2, reward=1.0, done=False, done_reason="", holding_before=False,
-            holding_after=True, policy_version=3, explore_rate=0.2)
-        proto = pb.Transition()
-        proto.ParseFromString(wire.encode_transition(msg))
-        protos.append(proto)
-    out = []
-    for i in range(count):
-        proto = protos[i % scenes]
-        proto.episode_id, proto.step = f"ep-{i // 100}", i % 100
-        out.append(proto.SerializeToString())
-    return out
-
-
 def _process_cpu_s(pid: int) -> float | None:
     """User + system CPU seconds of a process (Linux /proc), or None elsewhere."""
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _box_busy_s() -> float | None:
+    """CPU seconds all processes on this machine have used (non-idle time, /proc/stat), or None."""
+    try:
+        fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+        return (sum(fields[:8]) - fields[3] - fields[4]) / os.sysconf("SC_CLK_TCK")  # minus idle, iowait
     except (OSError, ValueError, IndexError):
         return None
 
@@ -120,35 +93,37 @@ def _insert_phase(client: ZenohReplayClient, payloads: list[bytes], clients: int
             errors.append(exc)
 
     threads = [threading.Thread(target=actor, args=(payloads[i::clients],)) for i in range(clients)]
-    cpu0, client_cpu0 = _process_cpu_s(pid), time.process_time()
+    cpu0, client_cpu0, box0 = _process_cpu_s(pid), time.process_time(), _box_busy_s()
     t0 = time.perf_counter()
     for t in threads:
         t.start()
     for t in threads:
         t.join()
     wall_s = time.perf_counter() - t0
-    cpu1, client_cpu1 = _process_cpu_s(pid), time.process_time()
+    cpu1, client_cpu1, box1 = _process_cpu_s(pid), time.process_time(), _box_busy_s()
     if errors:
         raise errors[0]
     n = len(payloads)
     mb = sum(len(p) for p in payloads) / 1e6
     out = {"inserts_per_s": round(n / wall_s, 1), "mb_per_s": round(mb / wall_s, 2),
-           "clients": clients, "insert_latency": _percentiles_ms(latencies),
+           "insert_latency": _percentiles_ms(latencies),
            "payload_kb": round(mb * 1000 / n, 1),
            "client_cpu_ms_per_insert": round((client_cpu1 - client_cpu0) / n * 1000, 3)}
     if cpu0 is not None and cpu1 is not None:
         out["server_cpu_ms_per_insert"] = round((cpu1 - cpu0) / n * 1000, 3)
+        if box0 is not None and box1 is not None:
+            # CPU spent on anything else meanwhile, in cores (2 = both cores busy elsewhere).
+            others_s = (box1 - box0) - (cpu1 - cpu0) - (client_cpu1 - client_cpu0)
+            out["other_load_cores"] = round(max(0.0, others_s) / wall_s, 2)
     return out
 
 
-def _sample_phase(session, client: ZenohReplayClient, batch_size: int, repeats: int, pid: int) -> dict:
-    request_key = client.keys.replay_sample
+def _sample_phase(client: ZenohReplayClient, batch_size: int, repeats: int, pid: int) -> dict:
     times, decode_s = [], []
     cpu0 = _process_cpu_s(pid)
     for i in range(repeats):
-        payload = wire.encode_sample_request(wire.SampleRequestMsg(f"b{batch_size}-{i}", batch_size))
         t0 = time.perf_counter()
-        reply = query_one(session, request_key, payload, timeout_s=10, parameters="wait_ms=5000")
+        reply = client.sample_encoded(batch_size, timeout_s=10)  # the learner's call, before its PNG decode
         times.append(time.perf_counter() - t0)
         if i < 5:  # the learner-side decode, a few times: it is the learner's cost, not the server's
             t1 = time.perf_counter()
@@ -184,40 +159,72 @@ def learner_step_s(repeats: int = 3) -> float | None:
 
 
 def run_replay_benchmark(inserts: int = 2000, repeats: int = 200, seed: int = 0, clients: int = 16,
-                         directory: str | Path | None = None) -> dict:
-    """Run every measurement once; returns one JSON-able dict (see the module docstring)."""
-    with tempfile.TemporaryDirectory(prefix="romannet-bench-replay-") as tmp:
-        work = Path(directory) if directory is not None else Path(tmp)
-        store_dir = work / "replay"
-        config_path = work / "bench.toml"
-        # No time- or count-based snapshots: the recovery measurement then replays the whole log.
-        config_path.write_text(f'run_id = "{_RUN_ID}"\n[replay]\nmin_size_to_sample = 8\n'
-                               "snapshot_every_s = 0.0\nsnapshot_every_inserts = 0\n")
-        payloads = encoded_transitions(inserts, seed=seed)
-        port = free_port()
-        proc = _start_server(store_dir, config_path, port)
-        result: dict = {"inserts": inserts, "repeats": repeats}
-        try:
-            with open_session(make_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as session:
-                client = ZenohReplayClient(session, _RUN_ID)
-                if not client.wait_until_ready(60):
-                    raise TimeoutError("the replay server did not come up within 60 s")
-                result["insert"] = _insert_phase(client, payloads, clients, proc.pid)
-                result["sample_b1"] = _sample_phase(session, client, 1, repeats, proc.pid)
-                result["sample_b8"] = _sample_phase(session, client, 8, repeats, proc.pid)
-        finally:
-            proc.send_signal(signal.SIGKILL)  # the crash case: recovery below has no shutdown snapshot
-            proc.wait(30)
-        disk_bytes = sum(p.stat().st_size for p in store_dir.rglob("*") if p.is_file())
-        result["bytes_per_transition"] = round(disk_bytes / inserts)
-        result["recovery_s_per_10k"] = round(_recovery_s(store_dir) / inserts * 10_000, 3)
+                         directory: str | Path | None = None,
+                         workloads: tuple[str, ...] = tuple(WORKLOADS)) -> dict:
+    """Run every measurement once per workload; returns one JSON-able dict (see the module docstring)."""
+    started = time.perf_counter()
+    result: dict = {"inserts": inserts, "repeats": repeats, "clients": clients, "workloads": {}}
     step_s = learner_step_s()
     result["learner_step_ms"] = round(step_s * 1000, 1) if step_s else None
-    cpu_ms = result["sample_b1"].get("server_cpu_ms_per_request")
-    result["server_cpu_share_of_learner_step"] = (round(cpu_ms / 1000 / step_s, 4)
-                                                  if step_s and cpu_ms is not None else None)
+    for name in workloads:
+        t0 = time.perf_counter()
+        scenes = WORKLOADS[name](seed)
+        payloads = distinct_payloads(scenes, inserts)
+        build_s = time.perf_counter() - t0
+        with tempfile.TemporaryDirectory(prefix=f"romannet-bench-replay-{name}-") as tmp:
+            work = Path(directory) / name if directory is not None else Path(tmp)
+            out = _measure_workload(work, payloads, repeats, clients, step_s)
+        out = {"scenes": len(scenes), "build_s": round(build_s, 2), **out}
+        out["meets_targets"] = _meets_targets(out)
+        result["workloads"][name] = out
+        log.info("bench replay %s: %s", name, out)
     result["targets"] = TARGETS
+    result["benchmark_s"] = round(time.perf_counter() - started, 1)
     return result
+
+
+def _measure_workload(work: Path, payloads: list[bytes], repeats: int, clients: int,
+                      step_s: float | None) -> dict:
+    """A fresh server in work/replay: inserts, samples (batch 1 and 8), kill -9, disk bytes, recovery."""
+    store_dir = work / "replay"
+    config_path = work / "bench.toml"
+    work.mkdir(parents=True, exist_ok=True)
+    # No time- or count-based snapshots: the recovery measurement then replays the whole log.
+    config_path.write_text(f'run_id = "{_RUN_ID}"\n[replay]\nmin_size_to_sample = 8\n'
+                           "snapshot_every_s = 0.0\nsnapshot_every_inserts = 0\n")
+    port = free_port()
+    proc = _start_server(store_dir, config_path, port)
+    out: dict = {}
+    try:
+        with open_session(make_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as session:
+            client = ZenohReplayClient(session, _RUN_ID)
+            if not client.wait_until_ready(60):
+                raise TimeoutError("the replay server did not come up within 60 s")
+            out.update(_insert_phase(client, payloads, clients, proc.pid))
+            fsyncs = client.stats().get("log_fsyncs")
+            out["inserts_per_fsync"] = round(len(payloads) / fsyncs, 2) if fsyncs else None
+            out["sample_b1"] = _sample_phase(client, 1, repeats, proc.pid)
+            out["sample_b8"] = _sample_phase(client, 8, repeats, proc.pid)
+    finally:
+        proc.send_signal(signal.SIGKILL)  # the crash case: recovery below has no shutdown snapshot
+        proc.wait(30)
+    disk_bytes = sum(p.stat().st_size for p in store_dir.rglob("*") if p.is_file())
+    out["bytes_per_transition"] = round(disk_bytes / len(payloads))
+    out["recovery_s_per_10k"] = round(_recovery_s(store_dir) / len(payloads) * 10_000, 3)
+    cpu_ms = out["sample_b1"].get("server_cpu_ms_per_request")
+    out["server_cpu_share_of_learner_step"] = (round(cpu_ms / 1000 / step_s, 4)
+                                               if step_s and cpu_ms is not None else None)
+    return out
+
+
+def _meets_targets(out: dict) -> dict[str, bool | None]:
+    share = out.get("server_cpu_share_of_learner_step")
+    return {
+        "inserts_per_s": out["inserts_per_s"] >= TARGETS["inserts_per_s"],
+        "sample_p99_ms": max(out["sample_b1"]["p99_ms"], out["sample_b8"]["p99_ms"]) <= TARGETS["sample_p99_ms"],
+        "recovery_s_per_10k": out["recovery_s_per_10k"] <= TARGETS["recovery_s_per_10k"],
+        "server_cpu_share": None if share is None else share < TARGETS["server_cpu_share"],
+    }
 
 
 def _recovery_s(store_dir: Path) -> float:

@@ -7,6 +7,7 @@ Usage (the session is the caller's; close it with the `with`):
         client.wait_until_ready(timeout_s=10)
         ack = client.insert(transition)          # returns once the server has it on disk
         batch = client.sample(8, timeout_s=5)    # TimeoutError while the rate limiter holds
+        raw = client.sample_encoded(8, timeout_s=5)  # the same, as the server's SampleBatch bytes
 
 Every request has a timeout; a server that is not running gives NoReplyError (a TimeoutError) after at
 most timeout_s, never a hang. Inserts are idempotent on (actor_id, episode_id, step), so an actor that
@@ -21,7 +22,9 @@ import uuid
 
 import zenoh
 
+from . import romannet_pb2 as pb
 from . import wire
+from .errors import DecodeError
 from .keys import RunKeys
 from .wire_messages import InsertAckMsg, PriorityUpdateMsg, SampleBatchMsg, SampleRequestMsg, TransitionMsg
 from .zenoh_session import RemoteError, query_one, wait_for_liveliness
@@ -36,6 +39,16 @@ _REPLY_MARGIN_S = 0.25
 def _wait_ms(timeout_s: float) -> int:
     """The rate-limiter wait to ask the server for, in ms: the timeout less a margin for the reply."""
     return int(max(0.0, timeout_s - min(_REPLY_MARGIN_S, timeout_s / 4)) * 1000)
+
+
+def _request_id_of(reply: bytes) -> str:
+    """The request_id of an encoded SampleBatch (a parse without decoding any PNG: well under 1 ms)."""
+    batch = pb.SampleBatch()
+    try:
+        batch.ParseFromString(reply)
+    except Exception as exc:
+        raise DecodeError(f"invalid SampleBatch: not a protobuf SampleBatch message ({exc})") from exc
+    return batch.request_id
 
 
 class RateLimitedError(RemoteError, TimeoutError):
@@ -86,6 +99,15 @@ class ZenohReplayClient:
         Raises RateLimitedError (a TimeoutError) when the rate limiter held the request for the whole
         timeout, NoReplyError (a TimeoutError) when the server did not answer.
         """
+        return wire.decode_sample_batch(self.sample_encoded(batch_size, timeout_s), self._expected_shape)
+
+    def sample_encoded(self, batch_size: int, timeout_s: float = 10.0) -> bytes:
+        """sample() without the decoding: the server's SampleBatch reply as it came (protobuf bytes), for
+        callers that decode it their own way (e.g. item by item). The reply is checked to answer this
+        request (its request_id); nothing else is validated, so decode it with wire.decode_sample_batch or
+        an equally strict decoder. Raises as sample() does, and DecodeError for a reply that is not a
+        SampleBatch.
+        """
         request = SampleRequestMsg(uuid.uuid4().hex, batch_size)
         try:
             reply = query_one(self._session, self.keys.replay_sample, wire.encode_sample_request(request),
@@ -94,11 +116,11 @@ class ZenohReplayClient:
             if err.reason == "rate_limited":
                 raise RateLimitedError(err.key, err.reason, err.detail) from None
             raise
-        batch = wire.decode_sample_batch(reply, self._expected_shape)
-        if batch.request_id != request.request_id:  # a reply meant for another request: a server bug
+        answered = _request_id_of(reply)
+        if answered != request.request_id:  # a reply meant for another request: a server bug
             raise RemoteError(self.keys.replay_sample, "mismatch",
-                              f"reply is for request {batch.request_id}, not {request.request_id}")
-        return batch
+                              f"reply is for request {answered}, not {request.request_id}")
+        return reply
 
     def update_priorities(self, update: PriorityUpdateMsg) -> None:
         """Publish new priorities by item id (fire and forget; ids of evicted items are ignored)."""

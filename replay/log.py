@@ -282,17 +282,28 @@ class SegmentLog:
         return self._segment
 
     # ---------------------------------------------------------------------------------------- reading
+    def _reader(self, segment: int) -> int:
+        with self._readers_mu:
+            fd = self._readers.get(segment)
+            if fd is None:
+                fd = os.open(segment_path(self.directory, segment), os.O_RDONLY)
+                self._readers[segment] = fd
+            return fd
+
     def read(self, loc: Location) -> bytes:
         """The stored bytes of one item (from the page cache when recent)."""
-        with self._readers_mu:
-            fd = self._readers.get(loc.segment)
-            if fd is None:
-                fd = os.open(segment_path(self.directory, loc.segment), os.O_RDONLY)
-                self._readers[loc.segment] = fd
-        data = os.pread(fd, loc.length, loc.data_offset)
+        data = os.pread(self._reader(loc.segment), loc.length, loc.data_offset)
         if len(data) != loc.length:
             raise OSError(f"short read of {loc}: {len(data)} bytes")
         return data
+
+    def read_into(self, loc: Location, out: memoryview) -> None:
+        """read(), straight into `out` (exactly loc.length bytes long): no bytes object in between."""
+        if len(out) != loc.length:
+            raise ValueError(f"buffer of {len(out)} bytes for an item of {loc.length}")
+        n = os.preadv(self._reader(loc.segment), [out], loc.data_offset)
+        if n != loc.length:
+            raise OSError(f"short read of {loc}: {n} bytes")
 
     def delete_segments_below(self, segment: int) -> list[int]:
         """Delete finished segments numbered below `segment` (their items are all evicted)."""

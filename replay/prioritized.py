@@ -57,6 +57,7 @@ class RankBasedSampler:
         self._added: list[int] = []  # slots added since the last refresh
         self._dirty = False
         self._size = 0
+        self._max: float | None = None  # highest priority held; None = unknown, recomputed when asked
         # cum[k-1] = sum_{j<=k} j^-alpha: the unnormalised CDF over ranks for any n <= capacity.
         self._cum = np.cumsum(np.arange(1, capacity + 1, dtype=np.float64) ** -self.alpha)
 
@@ -70,7 +71,9 @@ class RankBasedSampler:
         """Highest priority held (what a new item without its own priority gets), or `default` if empty."""
         if self._size == 0:
             return default
-        return float(self._prio[self._ids >= 0].max())
+        if self._max is None:  # O(capacity), so cached: every insert without its own priority asks
+            self._max = float(self._prio[self._ids >= 0].max())
+        return self._max
 
     def priority(self, item_id: int) -> float:
         """Priority of a held item (KeyError if not held)."""
@@ -85,6 +88,10 @@ class RankBasedSampler:
             raise ValueError(f"cannot add item {item_id}: slot {slot} holds item {int(self._ids[slot])}")
         self._ids[slot] = item_id
         self._prio[slot] = priority
+        if self._size == 0:
+            self._max = float(priority)
+        elif self._max is not None:
+            self._max = max(self._max, float(priority))
         if not self._in_order[slot]:  # a slot freed and reused before a refresh keeps its old entry
             self._added.append(slot)
             self._in_order[slot] = True
@@ -95,6 +102,8 @@ class RankBasedSampler:
         """Forget an item; False if it was not held."""
         if item_id not in self:
             return False
+        if self._max is not None and self._prio[item_id % self.capacity] >= self._max:
+            self._max = None
         self._ids[item_id % self.capacity] = -1
         self._size -= 1
         self._dirty = True
@@ -108,9 +117,14 @@ class RankBasedSampler:
             raise ValueError(f"{ids.size} ids but {prio.size} priorities: they must be equally long")
         slots = ids % self.capacity
         held = (ids >= 0) & (self._ids[slots] == ids)
+        if not held.any():
+            return 0
+        # Changing the item that holds the maximum makes it unknown; otherwise it can only grow.
+        lowered_max = self._max is None or bool((self._prio[slots[held]] >= self._max).any())
         self._prio[slots[held]] = prio[held]  # a repeated id: the last value wins, as in a loop
-        if held.any():
-            self._dirty = True
+        self._max = (None if lowered_max or self._max is None
+                     else max(self._max, float(self._prio[slots[held]].max())))
+        self._dirty = True
         return int(held.sum())
 
     def items(self) -> tuple[np.ndarray, np.ndarray]:

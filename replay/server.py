@@ -4,8 +4,9 @@ Threads: Zenoh calls our callbacks on its own threads, and a callback that block
 waiting for the rate limiter) stalls every other message of the session. So callbacks only copy the
 payload and enqueue; three small worker pools do the work:
 - insert workers: decode + validate the transition, `store.insert` (durable), reply with the ack;
-- sample workers: `store.sample` (may wait for the rate limiter), reply with the batch. A pool of their
-  own, because a sample waiting for inserts must never occupy the thread an insert needs (deadlock);
+- sample workers: `store.sample_encoded` (may wait for the rate limiter), reply with the batch. A pool
+  of their own, because a sample waiting for inserts must never occupy the thread an insert needs
+  (deadlock);
 - one control worker: priority updates and stats, in arrival order.
 A full queue is answered at once with an "overloaded" error instead of queueing without bound.
 
@@ -31,10 +32,9 @@ import zenoh
 from romannet.common import wire
 from romannet.common.errors import DecodeError
 from romannet.common.keys import RunKeys
-from romannet.common.wire_messages import InsertAckMsg, PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
+from romannet.common.wire_messages import InsertAckMsg, PriorityUpdateMsg, TransitionMsg
 from romannet.common.zenoh_session import format_error
 
-from .batchcodec import encode_sample_batch_fast
 from .rejections import Rejections, classify_decode_error
 from .validate import check_transition
 
@@ -46,8 +46,8 @@ class Store(Protocol):
 
     def insert(self, msg: TransitionMsg, encoded: bytes | None = None,
                timeout_s: float = 10.0) -> InsertAckMsg: ...
-    def sample(self, batch_size: int, timeout_s: float = 10.0, rng: Any = None,
-               request_id: str = "local") -> SampleBatchMsg: ...
+    def sample_encoded(self, batch_size: int, timeout_s: float = 10.0, rng: Any = None,
+                       request_id: str = "local") -> bytes | bytearray: ...
     def update_priorities(self, update: PriorityUpdateMsg) -> int: ...
     def record_rejection(self, reason: str) -> None: ...
     def stats(self) -> dict: ...
@@ -257,7 +257,8 @@ class ReplayServer:
             return
         wait_s = self._wait_s(query)
         try:
-            batch = self.store.sample(request.batch_size, timeout_s=wait_s, request_id=request.request_id)
+            reply = self.store.sample_encoded(request.batch_size, timeout_s=wait_s,
+                                              request_id=request.request_id)
         except TimeoutError as err:
             # Not counted as a rejection: waiting for data is normal flow, not bad input.
             query.reply_err(format_error("rate_limited", str(err) or f"no batch within {wait_s:.3g} s"))
@@ -266,7 +267,7 @@ class ReplayServer:
             self._reject(query, "store_refused", str(err))
             return
         self._count("sample")
-        query.reply(self.keys.replay_sample, encode_sample_batch_fast(batch))
+        query.reply(self.keys.replay_sample, reply)
 
     def _wait_s(self, query: zenoh.Query) -> float:
         """The rate-limiter wait the client asked for (wait_ms), within [0, max_wait_s] seconds."""

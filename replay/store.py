@@ -14,8 +14,9 @@ import logging
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -29,6 +30,7 @@ from romannet.common.wire import (
     encode_transition,
 )
 
+from .batchcodec import sample_batch_layout
 from .log import Location, SegmentLog
 from .prioritized import RankBasedSampler, annealed_beta, is_weights
 from .ratelimiter import RateLimiter
@@ -37,6 +39,8 @@ from .snapshot import write_snapshot
 from .storestats import RateMeter, build_stats
 
 log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
 
 
 class _Inflight:
@@ -214,6 +218,31 @@ class ReplayStore:
                request_id: str = "local") -> SampleBatchMsg:
         """A prioritized batch (with replacement) of stored transitions as encoded bytes, with P(i) and
         IS weights. Raises TimeoutError while the rate limiter holds sampling back for timeout_s seconds."""
+        def read(drawn: list[tuple[int, float, float, Location]]) -> list[bytes]:
+            return [self._log.read(loc) for _, _, _, loc in drawn]
+
+        drawn, size, datas = self._draw(batch_size, timeout_s, rng, read)
+        items = tuple(SampleItem(i, p, w, d) for (i, p, w, _), d in zip(drawn, datas, strict=True))
+        return SampleBatchMsg(request_id, items, size)
+
+    def sample_encoded(self, batch_size: int, timeout_s: float = 10.0, rng: np.random.Generator | None = None,
+                       request_id: str = "local") -> bytearray:
+        """sample() as the protobuf SampleBatch the server sends (what wire.encode_sample_batch would give),
+        with each transition read from the log straight into its place in the reply (batchcodec)."""
+        def read(drawn: list[tuple[int, float, float, Location]]) -> bytearray:
+            buf, offsets = sample_batch_layout(request_id, len(self._sampler),
+                                               [(i, p, w, loc.length) for i, p, w, loc in drawn])
+            view = memoryview(buf)
+            for (_, _, _, loc), off in zip(drawn, offsets, strict=True):
+                self._log.read_into(loc, view[off:off + loc.length])
+            return buf
+
+        return self._draw(batch_size, timeout_s, rng, read)[2]
+
+    def _draw(self, batch_size: int, timeout_s: float, rng: np.random.Generator | None,
+              read: Callable[[list[tuple[int, float, float, Location]]], _T]) -> tuple[
+                  list[tuple[int, float, float, Location]], int, _T]:
+        """Draw a batch: ([(id, P(i), IS weight, location)], buffer size, read(that list) under the lock)."""
         if not 1 <= batch_size <= self.cfg.max_batch_size:
             raise ValueError(f"batch_size = {batch_size} is invalid: must be 1..{self.cfg.max_batch_size} "
                              "(replay.max_batch_size)")
@@ -228,12 +257,12 @@ class ReplayStore:
             weights = is_weights(probs, size, beta)
             self._c["sample_batches"] += 1
             self._c["samples"] += batch_size
+            drawn = [(int(i), min(1.0, float(p)), float(w), self._location(int(i)))
+                     for i, p, w in zip(ids, probs, weights, strict=True)]
             # Read under the lock: a snapshot may reclaim a segment once its items are evicted.
-            datas = [self._log.read(self._location(int(i))) for i in ids]
+            data = read(drawn)
         self._sample_rate.add(batch_size)
-        items = tuple(SampleItem(int(i), min(1.0, float(p)), float(w), d)
-                      for i, p, w, d in zip(ids, probs, weights, datas, strict=True))
-        return SampleBatchMsg(request_id, items, size)
+        return drawn, size, data
 
     def update_priorities(self, update: PriorityUpdateMsg) -> int:
         """Apply new priorities by item id; ids no longer held are ignored. Returns the number applied."""
@@ -249,13 +278,16 @@ class ReplayStore:
             self._rejected[reason] += 1
 
     def stats(self) -> dict:
-        """Size, bytes, counters, rates, priority histogram, top-k, per-actor counts, policy lag."""
+        """Size, bytes, counters, rates, priority histogram, top-k, per-actor counts, policy lag, and
+        log_fsyncs (fsyncs of log chunks since start: inserts per fsync shows the group commit at work)."""
         with self._lock:
             ids, prios = self._sampler.items()
             pv = self._pv[ids % self.cfg.capacity_items] if len(ids) else np.zeros(0, np.int64)
-            return build_stats(self.cfg, ids, prios, pv, self._latest_policy, dict(self._c), self._bytes,
-                               self._insert_rate.rate(), self._sample_rate.rate(), dict(self._per_actor_held),
-                               dict(self._per_actor_inserts), dict(self._rejected), self._limiter.counters())
+            out = build_stats(self.cfg, ids, prios, pv, self._latest_policy, dict(self._c), self._bytes,
+                              self._insert_rate.rate(), self._sample_rate.rate(), dict(self._per_actor_held),
+                              dict(self._per_actor_inserts), dict(self._rejected), self._limiter.counters())
+        out["log_fsyncs"] = self._log.fsyncs
+        return out
 
     # ---------------------------------------------------------------------------------------- snapshots
     def snapshot(self) -> Path:

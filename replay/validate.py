@@ -16,6 +16,8 @@ encoded bytes for the pixels (ReplayStore.insert(msg, encoded=data) does exactly
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
 from romannet.common import romannet_pb2 as pb
@@ -61,15 +63,17 @@ def check_transition(data: bytes, expected_shape: tuple[int, int] | None = None,
         primitive = wire._PRIMITIVE_FROM_PB.get(t.action.primitive)
         if primitive is None:
             raise ValueError(f"action.primitive = {t.action.primitive} is invalid: must be PUSH, PICK or PLACE")
-        _check_png_sizes(t, expected_shape)
+        # Each read of a bytes field copies it out of the parsed message: read each PNG once.
+        pngs = {name: getattr(t, name) for name, _, _ in _PNG_FORMATS}
+        _check_png_sizes(SimpleNamespace(**pngs), expected_shape)
         for name, bit_depth, color_type in _PNG_FORMATS:
-            png = getattr(t, name)
+            png = pngs[name]
             got = read_png_header(png)[2:]
             if got != (bit_depth, color_type):
                 raise ValueError(f"{name}: bit depth {got[0]} and colour type {got[1]}; expected bit depth "
                                  f"{bit_depth} and colour type {color_type}")
             check_png_chunks(png)
-        h, w = read_png_header(t.color_before_png)[:2]
+        h, w = read_png_header(pngs["color_before_png"])[:2]
         color, depth = _placeholders(h, w)
         a = t.action
         return wire.TransitionMsg(

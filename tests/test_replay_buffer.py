@@ -12,7 +12,15 @@ from _replay_helpers import cfg, tr
 from romannet.common.config_replay import ReplayConfig
 from romannet.common.errors import ConfigError
 from romannet.common.interfaces import ReplayClient
-from romannet.common.wire import PriorityUpdateMsg, TransitionMsg, encode_transition
+from romannet.common.wire import (
+    PriorityUpdateMsg,
+    SampleBatchMsg,
+    SampleItem,
+    TransitionMsg,
+    decode_sample_batch,
+    encode_transition,
+)
+from romannet.replay.batchcodec import encode_sample_batch_fast
 from romannet.replay.inprocess import InProcessReplayClient
 from romannet.replay.prioritized import RankBasedSampler, annealed_beta, is_weights, rank_probabilities
 from romannet.replay.ratelimiter import RateLimiter
@@ -77,6 +85,34 @@ def test_sampler_updates_reorder_and_skip_unknown_ids() -> None:
     assert s.ranked()[0].tolist() == [0, 6, 1] and s.update([2], [1.0]) == 0
 
 
+def test_cached_max_priority_matches_brute_force() -> None:
+    # max_priority is cached (O(1) per insert); random adds, removals and updates must not make it stale.
+    rng = np.random.default_rng(3)
+    s = RankBasedSampler(16, 0.7)
+    held: dict[int, float] = {}
+    next_id = 0
+    for _ in range(3000):
+        op = rng.integers(3)
+        if op == 0 and len(held) < 16:
+            while next_id - 16 in held:  # the slot of id - 16 must be free first
+                s.remove(next_id - 16)
+                del held[next_id - 16]
+            p = float(rng.choice([0.5, 1.0, 2.0, rng.uniform(0, 3)]))
+            s.add(next_id, p)
+            held[next_id] = p
+            next_id += 1
+        elif op == 1 and held:
+            victim = int(rng.choice(list(held)))
+            assert s.remove(victim)
+            del held[victim]
+        elif held:
+            ids = [int(i) for i in rng.choice(list(held), size=int(rng.integers(1, 4)))]
+            prios = [float(rng.uniform(0, 3)) for _ in ids]
+            s.update(ids, prios)
+            held.update(zip(ids, prios, strict=True))  # a repeated id: the last value wins
+        assert s.max_priority(default=-1.0) == (max(held.values()) if held else -1.0)
+
+
 # -------------------------------------------------------------------------------------------- store
 @pytest.fixture
 def store(tmp_path):
@@ -97,6 +133,13 @@ def test_insert_sample_and_in_process_client(store: ReplayStore) -> None:
     decoded = client.sample(2)
     assert all(isinstance(it.transition, TransitionMsg) for it in decoded.items)
     assert client.stats()["size"] == 5
+    # The server's path: the same draw, already encoded as the SampleBatch reply.
+    raw = store.sample_encoded(8, rng=np.random.default_rng(0), request_id="r-1")
+    got = decode_sample_batch(bytes(raw))
+    # (IS weights differ: beta anneals with every sampled batch.)
+    same_draw = tuple(SampleItem(a.item_id, a.probability, b.is_weight, a.transition)
+                      for a, b in zip(batch.items, got.items, strict=True))
+    assert bytes(raw) == encode_sample_batch_fast(SampleBatchMsg("r-1", same_draw, 5))
 
 
 def test_idempotent_inserts_return_the_original_id(store: ReplayStore) -> None:

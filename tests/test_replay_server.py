@@ -29,7 +29,7 @@ from romannet.common.zenoh_session import (
     open_session,
     query_one,
 )
-from romannet.replay.batchcodec import encode_sample_batch_fast
+from romannet.replay.batchcodec import encode_sample_batch_fast, sample_batch_layout
 
 RUN = "test-run"
 SIDE_PX = 32
@@ -115,6 +115,12 @@ def test_fast_batch_encoding_decodes_like_wire() -> None:
     for a, b in zip(fast.items, slow.items, strict=True):
         assert (a.item_id, a.probability, a.is_weight) == (b.item_id, b.probability, b.is_weight)
         assert_transitions_equal(a.transition, b.transition)
+    # The server's layout (holes filled from the log) is byte for byte the same batch.
+    buf, offsets = sample_batch_layout("req-7", 99, [(it.item_id, it.probability, it.is_weight,
+                                                      len(it.transition)) for it in items])
+    for it, off in zip(items, offsets, strict=True):
+        buf[off:off + len(it.transition)] = it.transition
+    assert bytes(buf) == encode_sample_batch_fast(batch)
 
 
 def test_client_times_out_cleanly_without_server() -> None:
@@ -172,6 +178,8 @@ def test_idempotent_insert_fuzz_and_sigterm(server: Server, client: ZenohReplayC
     accepted.add(last.item_id)
     batch = client.sample(4, timeout_s=10)
     assert len(batch.items) == 4 and batch.buffer_size >= 2
+    raw = client.sample_encoded(3, timeout_s=10)  # the undecoded reply, as the learner's tolerant decoder takes it
+    assert len(wire.decode_sample_batch(raw).items) == 3
     stats = _wait_for(lambda: client.stats(), lambda s: "priorities" in s["server"]["rejected"])
     rejected = stats["server"]["rejected"]
     assert sum(rejected["insert"].values()) == refused >= 200
