@@ -10,7 +10,6 @@ stops offering them).
 
 from __future__ import annotations
 
-import uuid
 from typing import NamedTuple
 
 from google.protobuf import message as pb_message
@@ -18,13 +17,8 @@ from google.protobuf import message as pb_message
 from romannet.common import romannet_pb2 as pb
 from romannet.common import wire
 from romannet.common.errors import DecodeError
-from romannet.common.replay_client import RateLimitedError, ZenohReplayClient
-from romannet.common.wire_messages import MAX_BATCH_ITEMS, SampleBatchMsg, SampleItem, SampleRequestMsg
-from romannet.common.zenoh_session import RemoteError, query_one
-
-# As in common/replay_client.py: ask the server to give up on the rate limiter a little before our own
-# deadline, so we hear "rate_limited" instead of silence. Seconds.
-_REPLY_MARGIN_S = 0.25
+from romannet.common.replay_client import ZenohReplayClient
+from romannet.common.wire_messages import MAX_BATCH_ITEMS, SampleBatchMsg, SampleItem
 
 
 class CorruptItem(NamedTuple):
@@ -79,18 +73,6 @@ class TolerantReplayClient(ZenohReplayClient):
 
         Raises RateLimitedError / NoReplyError (TimeoutErrors) as ZenohReplayClient.sample does.
         """
-        request = SampleRequestMsg(uuid.uuid4().hex, batch_size)
-        wait_ms = int(max(0.0, timeout_s - min(_REPLY_MARGIN_S, timeout_s / 4)) * 1000)
-        try:
-            reply = query_one(self._session, self.keys.replay_sample, wire.encode_sample_request(request),
-                              timeout_s, parameters=f"wait_ms={wait_ms}")
-        except RemoteError as err:
-            if err.reason == "rate_limited":
-                raise RateLimitedError(err.key, err.reason, err.detail) from None
-            raise
-        batch, corrupt = decode_batch_tolerant(reply, self._expected_shape)
-        if batch.request_id != request.request_id:  # a reply meant for another request: a server bug
-            raise RemoteError(self.keys.replay_sample, "mismatch",
-                              f"reply is for request {batch.request_id}, not {request.request_id}")
+        batch, corrupt = decode_batch_tolerant(self.sample_encoded(batch_size, timeout_s), self._expected_shape)
         self.last_corrupt = tuple(corrupt)
         return batch
