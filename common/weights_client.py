@@ -73,6 +73,9 @@ class ZenohWeightsSource:
         # Exploration: newest received and newest returned.
         self._rate: ExplorationRateMsg | None = None
         self._returned_rate_version = -1
+        # Set when the learner's liveliness token goes away: its next appearance is a new incarnation
+        # (a restart without a checkpoint, or a resume from an older one) whose versions may be lower.
+        self._learner_gone = False
         self._thread = threading.Thread(target=self._fetch_loop, name="weights-fetch", daemon=True)
         self._thread.start()
         self._declared: list[Any] = [
@@ -163,11 +166,22 @@ class ZenohWeightsSource:
         if sample.kind != zenoh.SampleKind.PUT:
             log.info("the learner's liveliness token is gone; keeping weights version %d",
                      self._returned_version)
+            with self._lock:
+                self._learner_gone = True
+                self._counts["learner_gone"] += 1
             return
         with self._lock:
-            if self._pending is None:
-                self._pending = _LATEST
-                self._wake.notify_all()
+            if self._learner_gone:
+                # Versions count the learner's updates; a restarted learner may count from lower. Without
+                # this reset the actor would ignore it until it passed the old count.
+                log.info("the learner is back: accepting its weights from version 0 again (held v%d)",
+                         self._returned_version)
+                self._learner_gone = False
+                self._newest_seen = self._returned_version = self._returned_rate_version = -1
+                self._ready, self._rate = None, None
+                self._counts["learner_restarts"] += 1
+            self._pending = _LATEST
+            self._wake.notify_all()
 
     # ------------------------------------------------------------------------------------ fetching
     def _fetch_loop(self) -> None:

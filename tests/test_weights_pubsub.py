@@ -124,6 +124,27 @@ def test_late_actor_fetches_latest_when_learner_is_alive() -> None:
             token.undeclare()
 
 
+def test_a_restarted_learner_with_lower_versions_is_followed() -> None:
+    """A learner that crashed before its first checkpoint restarts at version 0: actors must take it."""
+    port = free_port()
+    with open_session(make_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as acs:
+        with ZenohWeightsSource(acs, RUN, fetch_timeout_s=5) as src:
+            for version in (9, 2):  # first incarnation at v9; the second starts over and is at v2
+                with open_session(make_config(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as ls, \
+                        WeightsPublisher(ls, RUN) as pub:
+                    pub.publish_weights(version, tensors(version))
+                    token = ls.liveliness().declare_token(RunKeys(RUN).learner_alive)
+                    try:
+                        got_version, got = wait_for(src.poll_weights, timeout_s=20)
+                        assert got_version == version
+                        torch.testing.assert_close(got["w"], tensors(version)["w"])
+                    finally:
+                        token.undeclare()
+                if version == 9:  # the first learner is gone before the second appears
+                    wait_for(lambda: True if src.stats().get("learner_gone") else None)
+            assert src.stats()["learner_restarts"] == 1
+
+
 def test_sha_and_size_mismatch_rejected(caplog: pytest.LogCaptureFixture) -> None:
     """A fetch answer that does not match the announcement is refused, counted and logged."""
     weights, ann = make_weights(3, tensors(3))
