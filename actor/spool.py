@@ -26,18 +26,12 @@ import threading
 import time
 from pathlib import Path
 
+from romannet.common.fsutil import fsync_directory
+
 log = logging.getLogger(__name__)
 
 _SUFFIX = ".pb"
 
-
-def _fsync_dir(path: Path) -> None:
-    """Make a rename or unlink in `path` durable (the directory entry, not just the file's data)."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 class Spool:
@@ -105,7 +99,7 @@ class Spool:
                 os.fsync(f.fileno())
         os.replace(tmp, self._path(seq))
         if self.fsync:
-            _fsync_dir(self.dir)
+            fsync_directory(self.dir)
         with self._lock:
             self._sizes[seq] = len(data)
             self._bytes += len(data)
@@ -158,8 +152,8 @@ class Spool:
         (self.rejected_dir / f"{name}.json").write_text(json.dumps(note, indent=1) + "\n", encoding="utf-8")
         os.replace(self._path(seq), target)
         if self.fsync:
-            _fsync_dir(self.rejected_dir)
-            _fsync_dir(self.dir)
+            fsync_directory(self.rejected_dir)
+            fsync_directory(self.dir)
         with self._lock:
             self.rejected += 1
         self._forget(seq)

@@ -29,6 +29,7 @@ import numpy as np
 import safetensors.torch
 import torch
 
+from romannet.common.fsutil import fsync_directory
 from romannet.common.model import load_tensors, state_dict_to_tensors
 
 from .trainer import Trainer
@@ -50,13 +51,6 @@ def _fsync_write(path: Path, data: bytes) -> None:
         f.flush()
         os.fsync(f.fileno())
 
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _rng_state() -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -107,7 +101,7 @@ def save_checkpoint(trainer: Trainer, run_dir: str | Path) -> Path:
              "exploration": trainer.exploration.state_dict(), "rng": rng_meta, "config": _configs(trainer)}
     _fsync_write(tmp / "tensors.safetensors", safetensors.torch.save(tensors, metadata={"format": "pt"}))
     _fsync_write(tmp / "state.json", json.dumps(state, indent=1).encode())
-    _fsync_dir(tmp)
+    fsync_directory(tmp)
     if final.exists():  # e.g. the shutdown checkpoint right after a periodic one at the same update
         old = root / f".{name}.old-{os.getpid()}"
         final.rename(old)
@@ -115,10 +109,10 @@ def save_checkpoint(trainer: Trainer, run_dir: str | Path) -> Path:
         shutil.rmtree(old, ignore_errors=True)
     else:
         tmp.rename(final)
-    _fsync_dir(root)
+    fsync_directory(root)
     _fsync_write(root / f".{LATEST}.tmp", name.encode())
     os.replace(root / f".{LATEST}.tmp", root / LATEST)
-    _fsync_dir(root)
+    fsync_directory(root)
     _prune(root, trainer.cfg.keep_checkpoints, keep=name)
     logger.info("checkpoint %s written (update %d)", final, trainer.updates)
     return final

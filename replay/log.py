@@ -25,6 +25,7 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+from romannet.common.fsutil import fsync_directory
 from romannet.common.wire import mcap_schema
 
 log = logging.getLogger(__name__)
@@ -80,14 +81,6 @@ def segment_preamble(first_item_id: int) -> bytes:
 SEGMENT_TRAILER = (_record(OP_DATA_END, struct.pack("<I", 0)) + _record(OP_FOOTER, struct.pack("<QQI", 0, 0, 0))
                    + MAGIC)
 
-
-def fsync_directory(directory: Path) -> None:
-    """Make a file creation/rename/deletion in `directory` durable."""
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _write_all(fd: int, data: bytes) -> None:

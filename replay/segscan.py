@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from romannet.common.fsutil import fsync_directory
+
 from .log import (
     CHUNK_FIXED_BYTES,
     MAGIC,
@@ -31,7 +33,6 @@ from .log import (
     OP_MESSAGE,
     SEGMENT_TRAILER,
     Location,
-    fsync_directory,
     segment_number,
 )
 

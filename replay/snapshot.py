@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from .log import fsync_directory
+from romannet.common.fsutil import fsync_directory
 
 log = logging.getLogger(__name__)
 
