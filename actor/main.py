@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import signal
 import threading
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from romannet.common.keys import RunKeys
 from romannet.common.model import RoManNet, validate_tensors
 from romannet.common.policy import InferenceEngine
 from romannet.common.replay_client import ZenohReplayClient
+from romannet.common.signals import stop_on_signals
 from romannet.common.weights_client import ZenohWeightsSource
 from romannet.common.zenoh_session import make_config, open_session
 
@@ -54,12 +54,7 @@ def run(args: argparse.Namespace) -> int:
     ws = cfg.workspace
     stop = threading.Event()
 
-    def on_signal(signum: int, _frame: object) -> None:
-        log.info("received %s: finishing the current action, then flush and exit", signal.Signals(signum).name)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
+    with stop_on_signals(stop, "finishing the current action, then flush and exit"):
         # Imported here: pybullet is heavy and only this verb needs it.
         from .sim.env import SimEnv
 
@@ -78,7 +73,4 @@ def run(args: argparse.Namespace) -> int:
                     token.undeclare()
         finally:
             env.close()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     return 0

@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import threading
 from pathlib import Path
 
 from romannet.common.config import Config, load_config
 from romannet.common.errors import RomannetError
+from romannet.common.signals import stop_on_signals
 from romannet.common.zenoh_session import make_config, open_session
 
 from .batches import TolerantReplayClient
@@ -60,18 +60,10 @@ def run(args: argparse.Namespace) -> int:
     ws = config.workspace
     stop = threading.Event()
 
-    def on_signal(signum: int, _frame: object) -> None:
-        log.info("received %s: finishing the current step, then checkpoint and exit", signal.Signals(signum).name)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
+    with stop_on_signals(stop, "finishing the current step, then checkpoint and exit"):
         with open_session(zenoh_config) as session:
             client = TolerantReplayClient(session, config.run_id, expected_shape=(ws.height_px, ws.width_px))
             run_learner(config, run_dir, client, session, stop, resume=args.resume,
                         ready=lambda trainer: log.info("learner ready (run %s, dir %s, update %d)",
                                                        config.run_id, run_dir, trainer.updates))
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     return 0

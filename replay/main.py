@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import threading
 from pathlib import Path
 
 from romannet.common.config import Config, load_config
 from romannet.common.config_replay import ReplayConfig
+from romannet.common.signals import stop_on_signals
 from romannet.common.zenoh_session import make_config
 
 from .server import ServerLimits, run_replay_server
@@ -40,17 +40,9 @@ def run(args: argparse.Namespace) -> int:
                           expected_shape=(ws.height_px, ws.width_px))
     stop = threading.Event()
 
-    def on_signal(signum: int, _frame: object) -> None:
-        log.info("received %s: shutting down", signal.Signals(signum).name)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
+    with stop_on_signals(stop, "shutting down"):
         Path(args.dir).mkdir(parents=True, exist_ok=True)
         run_replay_server(replay_cfg, args.dir, zenoh_config, stop, run_id=config.run_id, limits=limits,
                           ready=lambda server: log.info("replay server ready (run %s, dir %s)",
                                                         config.run_id, args.dir))
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     return 0
