@@ -139,6 +139,12 @@ def _mcap_episodes(run_dir: Path, actor_id: str) -> tuple[int, set[int], set[flo
     return steps, versions, rates
 
 
+def _each_actor_acked(up: Up, n: int) -> bool:
+    """Both actors have n acknowledged transitions (so both have started an episode and its MCAP file)."""
+    statuses = _statuses(up.run_dir)
+    return len(statuses) == 2 and all(s.get("acked", 0) >= n for s in statuses.values())
+
+
 def _check_run(up: Up, expected_actions: int, learning: bool = True) -> dict[str, Any]:
     """Everything a finished run must satisfy; returns the summary. learning: also require that each actor
     acted with at least two weights versions and received LAE rates (not when the test froze the replay,
@@ -202,7 +208,8 @@ def test_replay_outages_mid_run_lose_and_duplicate_nothing(tmp_path: Path, ups: 
     def acked() -> int:
         return sum(s.get("acked", 0) for s in _statuses(up.run_dir).values())
 
-    _wait_for(lambda: acked() >= 10 and "replay" in up.pids(), 120, "10 acknowledged transitions", up)
+    _wait_for(lambda: _each_actor_acked(up, 5) and "replay" in up.pids(), 120,
+              "5 acknowledged transitions from each actor", up)
     replay_pid = up.pids()["replay"]
     os.kill(replay_pid, signal.SIGSTOP)
     try:
@@ -238,8 +245,7 @@ def test_replay_outages_mid_run_lose_and_duplicate_nothing(tmp_path: Path, ups: 
 def test_ctrl_c_stops_cleanly_and_resume_continues(tmp_path: Path, ups: list[Up]) -> None:
     up = Up(tmp_path, "resumed", 0)  # no limit: runs until interrupted
     ups.append(up)
-    _wait_for(lambda: sum(s.get("acked", 0) for s in _statuses(up.run_dir).values()) >= 10, 120,
-              "10 acknowledged transitions", up)
+    _wait_for(lambda: _each_actor_acked(up, 5), 120, "5 acknowledged transitions from each actor", up)
     up.proc.send_signal(signal.SIGINT)  # what Ctrl-C delivers to the launcher (children have their own group)
     assert up.wait(120) == 0, up.output()
     summary = json.loads((up.run_dir / "summary.json").read_text())
