@@ -49,6 +49,7 @@ from .stats import ActorStats, ideal_actions, write_status
 log = logging.getLogger(__name__)
 
 _PAUSE_POLL_S = 0.25  # how often a paused actor re-checks the spool and the stop event
+_QUIET_PAUSE_S = 5.0  # a full spool that drains within this long is not reported as a pause
 
 
 @dataclass(frozen=True)
@@ -158,6 +159,10 @@ class ActorLoop:
     def wait_for_spool_room(self) -> bool:
         """Pause while the spool is full; False if stopped while paused."""
         if not self.spool.full():
+            return True
+        # A short wait is the normal rhythm when the replay's samples-per-insert limit holds acks back
+        # until the learner catches up (a small spool then paces the actor): only a longer one is news.
+        if self.spool.wait_for_room(_QUIET_PAUSE_S):
             return True
         reason = (f"spool full: {self.spool.items} transitions / {self.spool.bytes} bytes not acknowledged "
                   f"(bound {self.spool.max_items} items / {self.spool.max_bytes} bytes); is the replay "

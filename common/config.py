@@ -12,11 +12,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import tomllib
+
 from .config_actor import ActorConfig
 from .config_learner import LearnerConfig
 from .config_replay import ReplayConfig
 from .config_sim import SimConfig
 from .configbase import apply_overrides, from_dict, read_toml, require
+from .errors import ConfigError
 
 PRIMITIVES = ("push", "pick", "place")
 
@@ -221,3 +224,13 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
     data: dict[str, Any] = read_toml(path) if path is not None else {}
     data = apply_overrides(data, list(overrides))
     return from_dict(Config, data)
+
+
+def load_config_text(text: str, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """Like load_config, from TOML text (e.g. the resolved config carried by a checkpoint or an MCAP file)."""
+    try:
+        data: dict[str, Any] = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError("config text", text[:40] + ("…" if len(text) > 40 else ""),
+                          f"not valid TOML ({err})") from None
+    return from_dict(Config, apply_overrides(data, list(overrides)))

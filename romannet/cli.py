@@ -33,6 +33,10 @@ EXAMPLES = {
     "actor": ("romannet actor --config configs/default.toml --run-dir runs/default --actor-id actor-0 "
               "--connect tcp/127.0.0.1:7447\n  romannet actor --run-dir runs/default --actor-id actor-1 "
               "--max-actions 50 --set workspace.resolution_m=0.007 --connect tcp/127.0.0.1:7447"),
+    "eval": ("romannet eval runs/stack-h4 --task stacking --goal-height 2 3 4 5 --runs 30\n"
+             "  romannet eval runs/clutter --task clutter --objects 30 --object-set novel --protocol frozen\n"
+             "  romannet eval runs/clutter --task arrangement"),
+    "plot": "romannet plot runs/abl-baseline runs/abl-tpg runs/stack-h4 --labels baseline +TPG +TPG+LAE --out abl.png",
 }
 
 
@@ -133,6 +137,22 @@ def cmd_actor(args: argparse.Namespace) -> int:
     from romannet.actor.main import run
 
     return run(args)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from romannet.evaluate.cli import run
+
+    return run(args)
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from romannet.evaluate.curves import plot_runs
+
+    summary = plot_runs([Path(d) for d in args.run_dirs], Path(args.out), args.window, args.labels)
+    print(json.dumps(summary, indent=1))
+    return 0
 
 
 def cmd_up(args: argparse.Namespace) -> int:
@@ -237,6 +257,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Zenoh endpoint to connect to: the replay server or a router, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--zenoh-config", metavar="FILE.json5",
                    help="Zenoh config file (default: peer mode on loopback, multicast scouting off)")
+
+    p = verb("eval", "evaluate a checkpoint with the paper's protocol (30 greedy runs per test case, new seeds; "
+             "completion, pick success, action efficiency); writes report.md/.json/.png", cmd_eval)
+    from romannet.evaluate.cli import add_arguments as add_eval_arguments
+
+    add_eval_arguments(p)
+
+    p = verb("plot", "learning curves (action success rate and efficiency over training actions) of run "
+             "directories, one line per run, into one PNG", cmd_plot)
+    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
+    p.add_argument("--out", required=True, metavar="FILE.png")
+    p.add_argument("--window", type=int, default=200, metavar="N", help="sliding window in actions (200)")
+    p.add_argument("--labels", nargs="+", metavar="LABEL", help="one label per run (default: directory names)")
     return parser
 
 

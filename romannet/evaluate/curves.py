@@ -1,0 +1,146 @@
+"""Learning curves from run directories, like the paper's ablation figure: action success rate and action
+efficiency over training steps, one line per run (`romannet plot RUN_DIR...`).
+
+Source: the /step records of every episode file under RUN_DIR/episodes/ (what the actors did, in order of
+their end time across actors). A file cut short (an actor killed mid-episode) is read up to its last whole
+chunk; an unreadable file is skipped with a warning.
+
+Over a sliding window of the last `window` training actions:
+  action success rate  successful actions / actions (X of every primitive, as the paper's figure);
+  action efficiency    ideal actions of the episodes that completed inside the window / actions in the
+                       window (ideal: 2 (h - 1) for stacking, the objects of the scene for removal), so
+                       actions spent on failed episodes count against it, as in VPG's and SPOT's plots.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+STEP_TOPIC = "/step"
+
+
+@dataclass(frozen=True)
+class TrainingAction:
+    """One action of a training run, as the curves need it."""
+
+    t_ns: int
+    success: bool
+    episode_end: str  # done reason if this action ended its episode, else ""
+    ideal: int  # the episode's ideal action count (set on the ending action of a completed episode)
+
+
+def read_step_records(path: Path) -> list[dict]:
+    """The /step JSON records of one episode file, up to its last whole chunk."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    out: list[dict] = []
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        try:
+            for _schema, _channel, message in reader.iter_messages(topics=[STEP_TOPIC], log_time_order=False):
+                record = json.loads(message.data)
+                record["_t_ns"] = message.log_time
+                out.append(record)
+        except (McapError, EOFError, ValueError, OSError) as err:  # a torn tail: keep what was whole
+            log.warning("%s: read %d step(s), then stopped at an unreadable part (%s)", path, len(out), err)
+    return out
+
+
+def _ideal(task: str, goal_height: int, records: Sequence[dict]) -> int:
+    if task == "stacking":
+        return 2 * (goal_height - 1)
+    first = records[0]
+    info = first.get("info") or {}
+    # Objects at the start: those left after the first action, plus the one it removed (a clutter pick).
+    left = int(info.get("objects_in_workspace", 0))
+    return left + int(first.get("primitive") == "pick" and bool(first.get("success")))
+
+
+def run_actions(run_dir: Path) -> tuple[list[TrainingAction], dict]:
+    """Every training action of a run (all actors), in time order, and the run's task settings."""
+    from romannet.common.config import load_config
+
+    cfg = load_config(run_dir / "config.toml")
+    task, goal = cfg.task.kind, cfg.task.goal_stack_height
+    actions: list[TrainingAction] = []
+    files = sorted((run_dir / "episodes").glob("*/*.mcap"))
+    for path in files:
+        try:
+            records = read_step_records(path)
+        except Exception as err:  # not MCAP at all, or unreadable: one line, and go on
+            log.warning("%s skipped: %s", path, err)
+            continue
+        if not records:
+            continue
+        ideal = _ideal(task, goal, records)
+        for i, r in enumerate(records):
+            last = i == len(records) - 1
+            end = str(r.get("done_reason") or "") if last and r.get("done") else ""
+            actions.append(TrainingAction(int(r["_t_ns"]), bool(r.get("success")), end,
+                                          ideal if end == "done" else 0))
+    actions.sort(key=lambda a: a.t_ns)
+    return actions, {"task": task, "goal_stack_height": goal, "episode_files": len(files)}
+
+
+def windowed(actions: Sequence[TrainingAction], window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(action index, success rate, efficiency) at every action from the `window`-th on (or all, if fewer)."""
+    if window < 1:
+        raise ValueError(f"window {window}: must be at least 1")
+    n = len(actions)
+    if n == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    success = np.cumsum([a.success for a in actions], dtype=float)
+    ideal = np.cumsum([a.ideal for a in actions], dtype=float)
+    idx = np.arange(1, n + 1)
+    lo = np.maximum(idx - window, 0)
+    count = idx - lo
+    s_lo = np.where(lo > 0, success[lo - 1], 0.0)
+    i_lo = np.where(lo > 0, ideal[lo - 1], 0.0)
+    rate = (success - s_lo) / count
+    eff = np.minimum(1.0, (ideal - i_lo) / count)
+    start = min(window, n) - 1
+    return idx[start:], rate[start:], eff[start:]
+
+
+def plot_runs(run_dirs: Sequence[Path], out: Path, window: int = 200, labels: Sequence[str] | None = None) -> dict:
+    """Draw the curves of every run into `out` (PNG); returns per-run final values and counts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = list(labels) if labels else [p.name for p in run_dirs]
+    if len(labels) != len(run_dirs):
+        raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    summary: dict[str, dict] = {}
+    for k, (run_dir, label) in enumerate(zip(run_dirs, labels, strict=True)):
+        actions, meta = run_actions(run_dir)
+        x, rate, eff = windowed(actions, window)
+        color = f"C{k}"
+        ax.plot(x, 100 * rate, color=color, label=f"{label}: action success")
+        ax.plot(x, 100 * eff, color=color, linestyle=":", label=f"{label}: action efficiency")
+        episodes = sum(1 for a in actions if a.episode_end)
+        summary[label] = {"run_dir": str(run_dir), "actions": len(actions), "episodes": episodes,
+                          "completed": sum(1 for a in actions if a.episode_end == "done"),
+                          "final_success_rate": float(rate[-1]) if len(rate) else None,
+                          "final_efficiency": float(eff[-1]) if len(eff) else None, **meta}
+    ax.set_xlabel("training actions")
+    ax.set_ylabel(f"% over the last {window} actions")
+    ax.set_ylim(0, 100)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return summary

@@ -1,0 +1,191 @@
+"""One evaluation run in a worker process: fresh scene from a seed, greedy RoManNet, until the task ends.
+
+Protocols (the paper's "Evaluation Metrics"):
+  frozen  the checkpoint's weights, no learning at all.
+  paper   as the paper and the authors' (VPG-derived) code test: the weights are reset to the checkpoint
+          at the start of every run, and after every action the network takes one SGD step on that action's
+          transition (batch of one, the learner's loss, optimiser settings and target), so it can learn
+          within the run; the next decision uses the updated weights. The optimiser's momentum is reset
+          with the weights.
+
+A worker keeps its simulator, inference engine and trainer between runs (rebuilt only when the task
+changes), so a run costs its actions, not start-up. Everything here is per process: one worker, one
+PyBullet client, one torch thread pool of `threads` threads.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import safetensors.torch
+import torch
+
+from romannet.actor.sim.env import SimEnv
+from romannet.actor.sim.tasks import objects_in_workspace
+from romannet.common.config import Config, load_config_text
+from romannet.common.model import RoManNet, load_tensors
+from romannet.common.policy import InferenceEngine, decide
+from romannet.common.wire_messages import TransitionMsg
+from romannet.learner.trainer import Trainer
+
+from .metrics import RunLog, StepLog, ideal_actions
+
+log = logging.getLogger(__name__)
+
+PROTOCOLS = ("paper", "frozen")
+ENV_MAX_STEPS = 10000  # the run's own step limit (RunSpec.max_steps) ends it first
+
+
+@dataclass(frozen=True)
+class EvalSetup:
+    """What every run of one evaluation shares (sent to each worker once)."""
+
+    config_toml: str  # the resolved config the checkpoint was trained with, plus the eval's overrides
+    checkpoint: str  # a ckpt-* directory holding tensors.safetensors
+    protocol: str  # "paper" or "frozen"
+    threads: int = 1  # torch threads per worker
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: which case, which seed, which task variant."""
+
+    case: str  # name in the report: "clutter", "h4", or the arrangement case's file stem
+    seed: int
+    task: str  # clutter | arrangement | stacking
+    goal_height: int = 4  # stacking
+    num_objects: int = 30  # clutter
+    object_set: str = "blocks"  # clutter
+    case_file: str = ""  # arrangement
+    max_steps: int = 150
+
+
+def run_config(base: Config, spec: RunSpec) -> Config:
+    """The config of one run: the base with the spec's task, goal, objects or case file applied."""
+    task = dataclasses.replace(base.task, kind=spec.task, goal_stack_height=spec.goal_height)
+    sim = dataclasses.replace(base.sim, max_steps=ENV_MAX_STEPS)
+    if spec.task == "clutter":
+        sim = dataclasses.replace(sim, num_objects=spec.num_objects, object_set=spec.object_set)
+    elif spec.task == "arrangement":
+        sim = dataclasses.replace(sim, case_file=spec.case_file)
+    return dataclasses.replace(base, task=task, sim=sim)
+
+
+def load_model_tensors(checkpoint: str | Path) -> dict[str, torch.Tensor]:
+    """The online net's tensors of a checkpoint directory (safetensors; no pickle)."""
+    path = Path(checkpoint) / "tensors.safetensors"
+    tensors = safetensors.torch.load_file(str(path))
+    model = {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
+    if not model:
+        raise ValueError(f"{path} holds no model/ tensors: not a learner checkpoint")
+    return model
+
+
+class Worker:
+    """A worker process's simulator, policy and (paper protocol) trainer, reused across runs."""
+
+    def __init__(self, setup: EvalSetup):
+        torch.set_num_threads(max(1, setup.threads))
+        self.setup = setup
+        self.base = load_config_text(setup.config_toml)
+        self.weights = load_model_tensors(setup.checkpoint)
+        self.engine = InferenceEngine(RoManNet(self.base.model), self.base.model, parallel_nets=setup.threads >= 2)
+        self.engine.load_state(self.weights)
+        self._env: SimEnv | None = None
+        self._env_key: tuple | None = None
+        self._trainer: Trainer | None = None
+        self._trainer_key: object = None
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._env.close()
+        self.engine.close()
+
+    def env(self, cfg: Config) -> SimEnv:
+        key = (cfg.task, cfg.sim)
+        if self._env is None or self._env_key != key:
+            if self._env is not None:
+                self._env.close()
+            self._env, self._env_key = SimEnv.from_config(cfg), key
+        return self._env
+
+    def trainer(self, cfg: Config) -> Trainer:
+        """A trainer for cfg's task whose weights and optimiser are reset to the checkpoint."""
+        if self._trainer is None or self._trainer_key != cfg.task:
+            self._trainer = Trainer(cfg.model, cfg.learner, cfg.reward, cfg.task, exploration_cfg=cfg.exploration)
+            self._trainer_key = cfg.task
+        t = self._trainer
+        load_tensors(t.model, self.weights)
+        t.model.train()
+        t.optimizer.state.clear()  # momentum restarts with the weights
+        return t
+
+    def run(self, spec: RunSpec) -> RunLog:
+        """Play one run to its end; an exception becomes a run that ended with "error: …"."""
+        start = time.perf_counter()
+        try:
+            return self._run(spec, start)
+        except Exception as err:  # one broken run must not end a 330-run evaluation
+            log.exception("run %s seed %d failed", spec.case, spec.seed)
+            return RunLog(spec.case, spec.seed, 0, f"error: {type(err).__name__}: {err}", (),
+                          time.perf_counter() - start)
+
+    def _run(self, spec: RunSpec, start: float) -> RunLog:
+        cfg = run_config(self.base, spec)
+        env = self.env(cfg)
+        learning = self.setup.protocol == "paper"
+        trainer = self.trainer(cfg) if learning else None
+        self.engine.load_state(self.weights)
+        obs = env.reset(spec.seed)
+        present = int(objects_in_workspace(env.scene))
+        ideal = ideal_actions(spec.task, max(1, present), spec.goal_height)
+        rng = np.random.default_rng(spec.seed)  # greedy: only ties would draw from it
+        steps: list[StepLog] = []
+        end_reason = "step_limit"
+        for step in range(spec.max_steps):
+            action = decide(self.engine, obs.color_hm, obs.depth_hm, obs.holding, 0.0, rng, env.primitives,
+                            cfg.exploration)
+            t0 = time.time_ns()
+            result = env.step(action)
+            steps.append(StepLog(action.primitive, bool(result.success)))
+            if trainer is not None:
+                msg = TransitionMsg(
+                    actor_id="eval", episode_id=f"{spec.case}-{spec.seed}", step=step, start_ns=t0,
+                    end_ns=max(t0, time.time_ns()), task=spec.task, color_before=obs.color_hm,
+                    depth_before=obs.depth_hm, color_after=result.observation.color_hm,
+                    depth_after=result.observation.depth_hm, action=action, success=bool(result.success),
+                    progress_before=float(result.progress_before), progress_after=float(result.progress_after),
+                    reward=float(result.reward), done=bool(result.done),
+                    done_reason=result.done_reason if result.done else "", holding_before=bool(obs.holding),
+                    holding_after=bool(result.observation.holding), policy_version=0, explore_rate=0.0)
+                trainer.train_step([(msg, 1.0, 0)])
+                self.engine.load_state(trainer.state_tensors())
+            if result.done:
+                end_reason = result.done_reason
+                break
+            obs = result.observation
+        return RunLog(spec.case, spec.seed, ideal, end_reason, tuple(steps), time.perf_counter() - start)
+
+
+_WORKER: Worker | None = None
+
+
+def init_worker(setup: EvalSetup) -> None:
+    """Process-pool initializer: build this process's Worker."""
+    global _WORKER
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it lets the runs under way finish
+    logging.getLogger("romannet").setLevel(logging.WARNING)  # the parent reports progress
+    _WORKER = Worker(setup)
+
+
+def run_in_worker(spec: RunSpec) -> RunLog:
+    """Process-pool task: one run on this process's Worker."""
+    if _WORKER is None:
+        raise RuntimeError("init_worker() was not called in this process")
+    return _WORKER.run(spec)

@@ -1,0 +1,151 @@
+"""`romannet eval` and `romannet plot` end to end: a real learner checkpoint, real PyBullet runs in real
+worker processes, the report files a user reads; and the learning curves from real recorded episodes.
+
+Small everything (64x64 heightmaps, a 4-channel net, the floating gripper) so a run takes seconds."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from romannet.actor.service import run_actor
+from romannet.actor.sim.arrangements import default_cases
+from romannet.actor.sim.env import SimEnv
+from romannet.common.config import load_config
+from romannet.common.config_replay import ReplayConfig
+from romannet.common.configbase import write_toml
+from romannet.evaluate.curves import run_actions
+from romannet.evaluate.protocol import read_journal
+from romannet.learner.checkpoint import save_checkpoint
+from romannet.learner.trainer import Trainer
+from romannet.replay.inprocess import InProcessReplayClient
+from romannet.replay.store import ReplayStore
+
+pytestmark = pytest.mark.timeout(240)
+
+SETS = ["model.channels=4", "model.residual_blocks=1", "model.num_threads=1", "learner.num_threads=1",
+        'learner.precision="fp32"', "workspace.resolution_m=0.007", 'sim.robot="gripper"',
+        'task.kind="stacking"', "task.goal_stack_height=2", "task.use_push=false", "sim.num_stacking_cubes=3",
+        "camera.width_px=160", "camera.height_px=120", "camera.fx_px=154.655", "camera.fy_px=154.655",
+        "camera.cx_px=80.0", "camera.cy_px=60.0"]
+
+
+def make_run(tmp_path: Path, sets: list[str] = SETS) -> Path:
+    """A run directory with config.toml and one learner checkpoint (an untrained, seeded net)."""
+    run_dir = tmp_path / "run"
+    cfg = load_config(None, sets)
+    write_toml(cfg, run_dir / "config.toml")
+    trainer = Trainer(cfg.model, cfg.learner, cfg.reward, cfg.task, exploration_cfg=cfg.exploration)
+    save_checkpoint(trainer, run_dir)
+    return run_dir
+
+
+def romannet(*args: str, timeout_s: float = 200) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "romannet.cli", *args], capture_output=True, text=True,
+                          timeout=timeout_s)
+
+
+def test_eval_stacking_paper_protocol_on_two_processes(tmp_path: Path) -> None:
+    run_dir = make_run(tmp_path)
+    out = tmp_path / "eval"
+    proc = romannet("eval", str(run_dir), "--goal-height", "2", "3", "--runs", "2", "--workers", "2",
+                    "--max-steps", "6", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads((out / "report.json").read_text())
+    assert report["protocol"] == "paper" and report["task"] == "stacking" and not report["interrupted"]
+    assert report["updates"] == 0 and report["workers"] == 2 and report["goal_heights"] == [2, 3]
+    assert list(report["cases"]) == ["h2", "h3"]
+    runs = report["runs"]
+    assert len(runs) == 4 and len({r["seed"] for r in runs}) == 4
+    for r in runs:
+        assert 1 <= len(r["steps"]) <= 6
+        assert r["end_reason"] in ("done", "consecutive_failures", "step_limit", "unstable")
+        assert r["ideal_actions"] == (2 if r["case"] == "h2" else 4)
+        assert all(s.split(":")[0] in ("pick", "place") for s in r["steps"])  # no push in this task
+    total = sum(c["runs"] for c in report["cases"].values())
+    assert total == report["overall"]["runs"] == 4
+    assert read_journal(out / "runs.jsonl")  # the journal holds the same runs
+    assert len(read_journal(out / "runs.jsonl")) == 4
+    md = (out / "report.md").read_text()
+    assert "| h2 | 2 |" in md and "| h3 | 2 |" in md and "protocol `paper`" in md
+    assert (out / "report.png").stat().st_size > 1000
+    assert "| h2 | 2 |" in proc.stdout  # the table is printed too
+
+
+def test_eval_frozen_protocol_is_deterministic_and_arrangement_cases_get_rows(tmp_path: Path) -> None:
+    run_dir = make_run(tmp_path, [*SETS[:7], *SETS[-6:], 'task.kind="clutter"', "task.use_push=true"])
+    cases = tmp_path / "cases"
+    cases.mkdir()
+    for p in default_cases()[:2]:
+        shutil.copy(p, cases / p.name)
+    outs = []
+    for k in range(2):
+        out = tmp_path / f"eval{k}"
+        proc = romannet("eval", str(run_dir), "--task", "arrangement", "--cases", str(cases), "--runs", "1",
+                        "--workers", "1", "--protocol", "frozen", "--max-steps", "4", "--out", str(out))
+        assert proc.returncode == 0, proc.stderr
+        outs.append(json.loads((out / "report.json").read_text()))
+    a, b = outs
+    assert list(a["cases"]) == sorted(p.stem for p in cases.iterdir())
+    assert a["protocol"] == "frozen" and a["cases_dir"] == str(cases)
+    assert [r["steps"] for r in a["runs"]] == [r["steps"] for r in b["runs"]]  # no learning: same actions
+    assert all(r["ideal_actions"] >= 3 for r in a["runs"])  # the case's objects
+    assert "Cases completed in all runs" in (tmp_path / "eval0" / "report.md").read_text()
+
+
+def test_eval_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
+    proc = romannet("eval", str(tmp_path), "--runs", "1")
+    assert proc.returncode == 2 and "error:" in proc.stderr and "Traceback" not in proc.stderr
+    run_dir = make_run(tmp_path)
+    proc = romannet("eval", str(run_dir), "--goal-height", "7", "--runs", "1")
+    assert proc.returncode == 2 and "goal heights are 2..5" in proc.stderr
+    proc = romannet("eval", str(run_dir), "--runs", "1", "--set", "model.channels=8")
+    assert proc.returncode == 2 and "trained with model config" in proc.stderr
+    out = tmp_path / "busy"
+    out.mkdir()
+    (out / "runs.jsonl").write_text('{"case": "h2"}\n')
+    proc = romannet("eval", str(run_dir), "--runs", "1", "--out", str(out))
+    assert proc.returncode == 2 and "already holds runs" in proc.stderr
+
+
+class _NoWeights:
+    def poll_weights(self):
+        return None
+
+    def poll_exploration(self):
+        return None
+
+
+def test_plot_draws_curves_from_recorded_episodes(tmp_path: Path) -> None:
+    """A real actor records stacking episodes; `romannet plot` reads every action back in order."""
+    cfg = load_config(None, [*SETS, "task.goal_stack_height=2", "sim.max_consecutive_failures=3",
+                             "actor.spool_fsync=false", "actor.record_camera=false"])
+    run_dir = tmp_path / "train"
+    write_toml(cfg, run_dir / "config.toml")
+    env = SimEnv.from_config(cfg)
+    store = ReplayStore(ReplayConfig(fsync=False, snapshot_every_s=0.0, snapshot_every_inserts=0), tmp_path / "rp")
+    try:
+        acfg = dataclasses.replace(cfg.actor, max_actions=12, shutdown_flush_s=0.5)
+        stats = run_actor(cfg, run_dir, env, InProcessReplayClient(store), _NoWeights(), threading.Event(),
+                          actor_cfg=acfg)
+    finally:
+        env.close()
+        store.close()
+    actions, meta = run_actions(run_dir)
+    assert len(actions) == stats.actions == 12
+    assert [a.t_ns for a in actions] == sorted(a.t_ns for a in actions)
+    assert sum(1 for a in actions if a.episode_end) == stats.episodes
+    assert meta["task"] == "stacking" and meta["goal_stack_height"] == 2
+    out = tmp_path / "curves.png"
+    proc = romannet("plot", str(run_dir), str(run_dir), "--labels", "a", "b", "--window", "5", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["a"]["actions"] == 12 and summary["b"]["episodes"] == stats.episodes
+    assert out.stat().st_size > 1000

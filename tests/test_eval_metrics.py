@@ -1,0 +1,163 @@
+"""The paper's evaluation metrics on hand-made episode logs (romannet/evaluate/metrics.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from romannet.evaluate.curves import TrainingAction, windowed
+from romannet.evaluate.metrics import (
+    RunLog,
+    StepLog,
+    action_efficiency,
+    by_case,
+    cases_solved_in_all_runs,
+    completed,
+    failure_streak_at,
+    ideal_actions,
+    pick_success_rate,
+    summarize,
+)
+from romannet.evaluate.protocol import auto_max_steps, plan_runs, run_from_json, run_to_json
+
+
+def steps(text: str) -> tuple[StepLog, ...]:
+    """'P1 p0 L1' -> push success, pick failure, place success (P push, p pick, L place)."""
+    names = {"P": "push", "p": "pick", "L": "place"}
+    return tuple(StepLog(names[t[0]], t[1] == "1") for t in text.split())
+
+
+def run(text: str, end: str = "done", ideal: int = 3, case: str = "c") -> RunLog:
+    return RunLog(case, 0, ideal, end, steps(text))
+
+
+def test_ideal_actions_are_objects_for_removal_and_two_per_added_cube_for_stacking():
+    assert ideal_actions("clutter", 30, 4) == 30
+    assert ideal_actions("arrangement", 6, 4) == 6
+    assert [ideal_actions("stacking", 0, h) for h in (2, 3, 4, 5)] == [2, 4, 6, 8]
+    with pytest.raises(ValueError, match="at least 2"):
+        ideal_actions("stacking", 10, 1)
+    with pytest.raises(ValueError, match="nothing to remove"):
+        ideal_actions("clutter", 0, 4)
+    with pytest.raises(ValueError, match="unknown task"):
+        ideal_actions("sorting", 3, 4)
+
+
+def test_ten_consecutive_failures_rule_counts_only_unbroken_streaks():
+    nine = [False] * 9
+    assert failure_streak_at(nine) is None
+    assert failure_streak_at(nine + [False]) == 9
+    assert failure_streak_at(nine + [True] + nine) is None  # a success in between resets the streak
+    assert failure_streak_at([True] * 3 + [False] * 10 + [True]) == 12
+    assert failure_streak_at([False, False], limit=2) == 1
+    with pytest.raises(ValueError):
+        failure_streak_at([True], limit=0)
+
+
+def test_a_run_is_complete_only_if_done_without_a_prior_failure_streak():
+    ok = run("p0 " * 9 + "p1 p1 p1")
+    assert completed(ok)
+    streak_then_done = run("p0 " * 10 + "p1 p1 p1")  # the simulator went on, the paper's rule does not
+    assert not completed(streak_then_done)
+    assert not completed(run("p1 p1", end="step_limit"))
+    assert not completed(run("p1", end="unstable"))
+    assert not completed(run("p0 " * 10, end="consecutive_failures"))
+
+
+def test_pick_success_rate_counts_picks_only():
+    r = run("P1 p0 p1 P0 p1 L1")
+    assert pick_success_rate(r) == pytest.approx(2 / 3)
+    assert pick_success_rate(run("P1 P1")) is None
+
+
+def test_action_efficiency_is_ideal_over_actual_capped_at_one():
+    assert action_efficiency(run("p1 p1 p1", ideal=3)) == 1.0
+    assert action_efficiency(run("p0 p1 p1 p1", ideal=3)) == 0.75
+    # clutter: a push swept two objects out of the workspace, fewer actions than objects
+    assert action_efficiency(run("P1 p1", ideal=3)) == 1.0
+    assert action_efficiency(RunLog("c", 0, 3, "error: x", ())) is None
+
+
+def test_stacking_efficiency_uses_two_actions_per_added_cube():
+    h4 = ideal_actions("stacking", 0, 4)
+    perfect = run("p1 L1 p1 L1 p1 L1", ideal=h4)
+    sloppy = run("p1 L0 p1 L1 p0 p1 L1 p1 L1", ideal=h4)  # 9 actions for an ideal of 6
+    assert action_efficiency(perfect) == 1.0
+    assert action_efficiency(sloppy) == pytest.approx(6 / 9)
+
+
+def test_summary_averages_over_completed_runs_and_reports_end_reasons():
+    runs = [run("p1 p1 p1", ideal=3),  # complete: pick 1.0, eff 1.0
+            run("p0 p1 p1 p1", ideal=3),  # complete: pick 0.75, eff 0.75
+            run("p1 " + "p0 " * 10, end="consecutive_failures"),  # incomplete: partial progress ignored
+            run("p0 " * 10 + "p1 p1 p1"),  # "done" after a streak: incomplete
+            run("p1 p1", end="step_limit")]
+    s = summarize(runs)
+    assert (s.runs, s.completed) == (5, 2)
+    assert s.completion_rate == pytest.approx(0.4)
+    assert s.pick_success_rate == pytest.approx((1.0 + 0.75) / 2)
+    assert s.action_efficiency == pytest.approx((1.0 + 0.75) / 2)
+    assert s.end_reasons == {"consecutive_failures": 2, "done": 2, "step_limit": 1}
+    assert not s.solved_all
+    assert s.mean_actions == pytest.approx((3 + 4 + 11 + 13 + 2) / 5)
+
+
+def test_summary_of_runs_without_any_completion_has_no_rates():
+    s = summarize([run("p0 " * 10, end="consecutive_failures")])
+    assert s.completion_rate == 0.0 and s.pick_success_rate is None and s.action_efficiency is None
+    with pytest.raises(ValueError):
+        summarize([])
+
+
+def test_completed_run_without_picks_is_left_out_of_the_pick_mean():
+    s = summarize([run("P1", ideal=1), run("p1 p0 p1", ideal=2)])
+    assert s.completed == 2
+    assert s.pick_success_rate == pytest.approx(2 / 3)
+
+
+def test_per_case_rows_and_cases_solved_in_all_runs():
+    runs = [run("p1 p1", ideal=2, case="a"), run("p1 p1", ideal=2, case="a"),
+            run("p1 p1", ideal=2, case="b"), run("p0 " * 10, end="consecutive_failures", case="b")]
+    per = by_case(runs)
+    assert list(per) == ["a", "b"]
+    assert per["a"].completion_rate == 1.0 and per["b"].completion_rate == 0.5
+    assert cases_solved_in_all_runs(per) == 1
+
+
+def test_plan_gives_each_run_a_new_seed_and_cases_distinct_seed_ranges():
+    specs = plan_runs("stacking", 30, 100, goal_heights=(2, 3, 4, 5))
+    assert len(specs) == 120
+    assert len({s.seed for s in specs}) == 120
+    assert [s.case for s in specs[::30]] == ["h2", "h3", "h4", "h5"]
+    assert specs[30].goal_height == 3 and specs[30].max_steps == auto_max_steps("stacking", 0, 3) == 30
+    clutter = plan_runs("clutter", 3, 0, num_objects=30, object_set="novel")
+    assert [s.seed for s in clutter] == [0, 1, 2] and clutter[0].case == "novel-30"
+    assert clutter[0].max_steps == 150
+    with pytest.raises(ValueError, match="no arrangement case files"):
+        plan_runs("arrangement", 3, 0)
+
+
+def test_run_records_round_trip_through_the_journal_format():
+    r = RunLog("case_01", 7, 4, "done", steps("P1 p0 p1"), 1.5)
+    assert run_from_json(run_to_json(r)) == r
+
+
+def test_windowed_curves_count_failed_episodes_against_efficiency():
+    def act(i: int, ok: bool, end: str = "", ideal: int = 0) -> TrainingAction:
+        return TrainingAction(i, ok, end, ideal)
+
+    # episode 1: 4 actions, done, ideal 2; episode 2: 3 failures, ended by the failure rule
+    actions = [act(0, True), act(1, False), act(2, True), act(3, True, "done", 2),
+               act(4, False), act(5, False), act(6, False, "consecutive_failures")]
+    x, rate, eff = windowed(actions, window=4)
+    assert list(x) == [4, 5, 6, 7]
+    assert rate[0] == pytest.approx(3 / 4) and eff[0] == pytest.approx(2 / 4)
+    assert rate[-1] == pytest.approx(1 / 4) and eff[-1] == pytest.approx(2 / 4)  # episode 1 ended in the window
+    _, rate3, eff3 = windowed(actions, window=3)
+    assert rate3[-1] == 0.0 and eff3[-1] == 0.0  # only the failed episode's actions
+    x, rate, eff = windowed(actions[:2], window=10)  # fewer actions than the window: one point
+    assert list(x) == [2] and math.isclose(rate[0], 0.5)
+    assert windowed([], 5)[0].size == 0
+    assert np.all((rate >= 0) & (rate <= 1))
