@@ -98,7 +98,8 @@ class LearnerMetrics:
         self._history: dict[str, list[tuple[int, float]]] = {c: [] for _, cols in _PANELS for c in cols}
         self._load_history()
         new_file = not self.csv_path.exists() or self.csv_path.stat().st_size == 0
-        self._csv_file = self.csv_path.open("a", newline="")
+        # Line-buffered: the launcher's progress line reads the last row (one row per update, cheap).
+        self._csv_file = self.csv_path.open("a", newline="", buffering=1)
         self._csv = csv.DictWriter(self._csv_file, fieldnames=COLUMNS, extrasaction="ignore")
         if new_file:
             self._csv.writeheader()
