@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from romannet.common.config import ExplorationConfig, ModelConfig
+from romannet.common.info import cpu_model
 from romannet.common.model import RoManNet, parameter_count, preprocess
 from romannet.common.policy import (
     FastNet,
@@ -212,24 +213,13 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
         "repeats": repeats,
         "rotation_repeats": rotation_repeats,
         "size_px": [SIZE_PX, SIZE_PX],
-        "machine": f"{platform.machine()} {platform.processor() or ''} {_cpu_model()}".strip(),
+        "machine": f"{platform.machine()} {platform.processor() or ''} {cpu_model()}".strip(),
         "date": datetime.date.today().isoformat(),
     }
     if ablation:
         result["forward_push_pick_ms"] = _ablation(engine, x, max(3, repeats // 6))
     result["benchmark_s"] = round(time.perf_counter() - started, 1)
     return result
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return ""
 
 
 def main(argv: list[str] | None = None) -> int:

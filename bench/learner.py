@@ -29,11 +29,12 @@ import torch
 from romannet.common.action import Action
 from romannet.common.config import ModelConfig, RewardConfig, TaskConfig
 from romannet.common.config_learner import LearnerConfig
+from romannet.common.info import cpu_model
 from romannet.common.policy import cpu_bf16_flags
 from romannet.common.wire_messages import TransitionMsg
 from romannet.learner.trainer import BatchItem, Trainer
 
-from .inference import SIZE_PX, _cpu_model, synthetic_scene
+from .inference import SIZE_PX, synthetic_scene
 
 logger = logging.getLogger(__name__)
 TARGET_RATIO = 2.0  # issue 5: fast >= 2x the naive eager fp32 rate
@@ -110,7 +111,7 @@ def run_learner_benchmark(batch_sizes: tuple[int, ...] = (1, 4, 8), repeats: int
         "repeats": repeats,
         "cpu_bf16_flags": list(cpu_bf16_flags()),
         "torch": torch.__version__,
-        "machine": f"{platform.machine()} {_cpu_model()}".strip(),
+        "machine": f"{platform.machine()} {cpu_model()}".strip(),
         "date": datetime.date.today().isoformat(),
         "benchmark_s": round(time.perf_counter() - started, 1),
     }

@@ -17,6 +17,18 @@ def _version(dist: str) -> str:
         return "not installed"
 
 
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo ("" where unreadable), for benchmark and eval reports."""
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
 def collect_info(cfg: Config) -> dict[str, Any]:
     import torch
 

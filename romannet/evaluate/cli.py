@@ -68,8 +68,9 @@ def resolve_checkpoint(path: Path) -> tuple[Path, Path]:
 def _machine() -> str:
     import torch
 
-    return (f"{platform.machine()} {platform.processor() or 'cpu'}, {os.cpu_count()} cores, "
-            f"torch {torch.__version__}")
+    from romannet.common.info import cpu_model
+
+    return f"{platform.machine()} {cpu_model() or 'CPU'}, {os.cpu_count()} cores, torch {torch.__version__}"
 
 
 def run(args: argparse.Namespace) -> int:
