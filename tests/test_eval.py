@@ -149,3 +149,36 @@ def test_plot_draws_curves_from_recorded_episodes(tmp_path: Path) -> None:
     summary = json.loads(proc.stdout)
     assert summary["a"]["actions"] == 12 and summary["b"]["episodes"] == stats.episodes
     assert out.stat().st_size > 1000
+
+
+def test_paper_protocol_learns_within_a_run_and_resets_to_the_checkpoint(tmp_path: Path) -> None:
+    import torch
+
+    from romannet.common.configbase import dumps_toml
+    from romannet.common.model import state_dict_to_tensors
+    from romannet.evaluate.runner import EvalSetup, RunSpec, Worker, load_model_tensors
+
+    run_dir = make_run(tmp_path)
+    ckpt = run_dir / "checkpoints" / (run_dir / "checkpoints" / "LATEST").read_text().strip()
+    saved = load_model_tensors(ckpt)
+    cfg = load_config(run_dir / "config.toml")
+    worker = Worker(EvalSetup(dumps_toml(cfg), str(ckpt), "paper"))
+    try:
+        spec = RunSpec(case="h2", seed=5, task="stacking", goal_height=2, max_steps=3)
+        first = worker.run(spec)
+        trainer = worker._trainer
+        assert trainer is not None and trainer.updates == first.actions == 3  # one SGD step per action
+        learned = state_dict_to_tensors(worker.engine.model)
+        assert any(not torch.equal(learned[k], saved[k]) for k in saved)  # the run changed the weights
+        second = worker.run(spec)  # same seed, weights reset to the checkpoint: the same run again
+        assert second.steps == first.steps
+        assert trainer.updates == 6
+    finally:
+        worker.close()
+    frozen = Worker(EvalSetup(dumps_toml(cfg), str(ckpt), "frozen"))
+    try:
+        frozen.run(spec)
+        now = state_dict_to_tensors(frozen.engine.model)
+        assert all(torch.equal(now[k], saved[k]) for k in saved) and frozen._trainer is None
+    finally:
+        frozen.close()
