@@ -182,3 +182,32 @@ def test_paper_protocol_learns_within_a_run_and_resets_to_the_checkpoint(tmp_pat
         assert all(torch.equal(now[k], saved[k]) for k in saved) and frozen._trainer is None
     finally:
         frozen.close()
+
+
+def test_curves_read_an_episode_cut_short_up_to_its_last_whole_chunk(tmp_path: Path) -> None:
+    """An actor killed mid-episode leaves a file without a summary: its whole chunks still count."""
+    from romannet.actor.recorder import EpisodeRecorder
+    from romannet.evaluate.curves import read_step_records
+
+    cfg = load_config(None, SETS)
+    run_dir = tmp_path / "cut"
+    write_toml(cfg, run_dir / "config.toml")
+    path = run_dir / "episodes" / "actor-0" / "ep000000.mcap"
+    path.parent.mkdir(parents=True)
+
+    def record(target: Path, steps: int) -> bytes:
+        rec = EpisodeRecorder(target, {"run_id": "r", "actor_id": "actor-0", "task": "stacking"}, chunk_bytes=1024)
+        for step in range(steps):
+            rec.write_step(b"\x00" * 10, {"step": step, "success": step % 2 == 0, "done": step == 5,
+                                          "done_reason": "done" if step == 5 else ""}, 1_000 + step)
+        rec.close()
+        return target.read_bytes()
+
+    five, six = record(tmp_path / "five.mcap", 5), record(path, 6)
+    assert [r["step"] for r in read_step_records(path)] == list(range(6))
+    chunk6 = next(i for i, (a, b) in enumerate(zip(five, six, strict=False)) if a != b)  # 6th chunk starts here
+    path.write_bytes(six[: chunk6 + 30])  # the writer died inside the 6th chunk: no summary either
+    cut = read_step_records(path)
+    assert [r["step"] for r in cut] == list(range(5))
+    actions, _ = run_actions(run_dir)
+    assert len(actions) == len(cut) and not any(a.episode_end for a in actions)  # it never ended

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,18 +40,26 @@ class TrainingAction:
 
 def read_step_records(path: Path) -> list[dict]:
     """The /step JSON records of one episode file, up to its last whole chunk."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
+    from mcap.exceptions import EndOfFile, McapError
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
 
     out: list[dict] = []
+    step_channels: set[int] = set()
     with open(path, "rb") as f:
-        reader = make_reader(f)
+        # Streamed record by record from the start, not through the summary: an episode being written or
+        # cut short by a crash has no (valid) summary, and its whole chunks must still count.
         try:
-            for _schema, _channel, message in reader.iter_messages(topics=[STEP_TOPIC], log_time_order=False):
-                record = json.loads(message.data)
-                record["_t_ns"] = message.log_time
-                out.append(record)
-        except (McapError, EOFError, ValueError, OSError) as err:  # a torn tail: keep what was whole
+            for record in StreamReader(f, skip_magic=False, validate_crcs=True).records:
+                if isinstance(record, Channel) and record.topic == STEP_TOPIC:
+                    step_channels.add(record.id)
+                elif isinstance(record, Message) and record.channel_id in step_channels:
+                    step = json.loads(record.data)
+                    step["_t_ns"] = record.log_time
+                    out.append(step)
+        except EndOfFile:  # an episode still being written, or cut by a crash: its whole chunks count
+            log.debug("%s ends inside a record (being written, or cut short): %d step(s) read", path, len(out))
+        except (McapError, ValueError, OSError, struct.error) as err:  # corrupt from some point on
             log.warning("%s: read %d step(s), then stopped at an unreadable part (%s)", path, len(out), err)
     return out
 
