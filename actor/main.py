@@ -64,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
             with open_session(zenoh_config) as session:
                 token = session.liveliness().declare_token(RunKeys(cfg.run_id).actor_alive(acfg.actor_id))
                 try:
-                    client = ZenohReplayClient(session, cfg.run_id, expected_shape=(ws.height_px, ws.width_px))
+                    client = ZenohReplayClient(session, cfg.run_id, expected_shape=(ws.height_px, ws.width_px),
+                                               actor_id=acfg.actor_id)
                     with ZenohWeightsSource(session, cfg.run_id, fetch_timeout_s=acfg.weights_fetch_timeout_s,
                                             validate=lambda t: validate_tensors(engine.model, t)) as source:
                         log.info("actor %s ready (run %s, dir %s)", acfg.actor_id, cfg.run_id, run_dir)

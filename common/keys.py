@@ -8,7 +8,7 @@ fails at start-up with a clear message instead of silently addressing the wrong 
 
 | key                                   | kind                  | payload                                  |
 |---------------------------------------|-----------------------|------------------------------------------|
-| .../replay/insert                     | queryable (get)       | Transition -> InsertAck (reply) or error |
+| .../replay/insert/<actor_id>          | queryable (get)       | Transition -> InsertAck (reply) or error |
 | .../replay/sample                     | queryable (get)       | SampleRequest -> SampleBatch or error    |
 | .../replay/priorities                 | subscriber (put)      | PriorityUpdate                           |
 | .../replay/stats                      | queryable (get)       | (none) -> JSON object                    |
@@ -57,11 +57,17 @@ class RunKeys:
         return f"{PREFIX}/{self.run_id}"
 
     # ---------------------------------------------------------------------------------------- replay
+    def replay_insert(self, actor_id: str) -> str:
+        """Where actor_id sends its transitions: the query payload is an encoded Transition of that actor;
+        the reply is an encoded InsertAck, sent only after the transition is durable (an error reply says
+        why it was refused). One key per actor, so a router's access control can let each actor insert
+        under its own id only; the server refuses a transition whose actor_id is not the key's."""
+        return f"{self.root}/replay/insert/{check_chunk('actor_id', actor_id)}"
+
     @property
-    def replay_insert(self) -> str:
-        """Queryable: the query payload is an encoded Transition; the reply is an encoded InsertAck,
-        sent only after the transition is durable (an error reply says why it was refused)."""
-        return f"{self.root}/replay/insert"
+    def replay_inserts(self) -> str:
+        """Key expression of every actor's insert key (the replay server's queryable)."""
+        return f"{self.root}/replay/insert/*"
 
     @property
     def replay_sample(self) -> str:

@@ -34,6 +34,8 @@ log = logging.getLogger(__name__)
 # The server answers a request that its rate limiter holds back a little before the client's deadline,
 # so the client hears "rate_limited" rather than silence. Seconds.
 _REPLY_MARGIN_S = 0.25
+# The insert key chunk for bytes that name no valid actor id (never a real actor: ids come from configs).
+_UNIDENTIFIED = "0-unidentified"
 
 
 def _wait_ms(timeout_s: float) -> int:
@@ -60,13 +62,17 @@ class ZenohReplayClient:
     """ReplayClient (common/interfaces.py) backed by a replay server reached through `session`.
 
     run_id selects the server (`romannet/@v1/<run_id>/replay/...`); expected_shape (h, w) in pixels, if
-    given, is enforced on every sampled transition.
+    given, is enforced on every sampled transition. actor_id: the actor this client inserts for (its
+    transitions go to `.../replay/insert/<actor_id>`, the only insert key a secure router lets that actor
+    use); None reads it from each transition.
     """
 
-    def __init__(self, session: zenoh.Session, run_id: str, expected_shape: tuple[int, int] | None = None):
+    def __init__(self, session: zenoh.Session, run_id: str, expected_shape: tuple[int, int] | None = None,
+                 actor_id: str | None = None):
         self._session = session
         self.keys = RunKeys(run_id)
         self._expected_shape = expected_shape
+        self._insert_key = self.keys.replay_insert(actor_id) if actor_id is not None else None
 
     def wait_until_ready(self, timeout_s: float = 10.0) -> bool:
         """True once the server's liveliness token is visible (it serves from then on), else False."""
@@ -85,13 +91,21 @@ class ZenohReplayClient:
         """insert() for a transition already encoded with wire.encode_transition (actors that also
         record MCAP encode once and reuse the bytes)."""
         try:
-            reply = query_one(self._session, self.keys.replay_insert, data, timeout_s,
+            reply = query_one(self._session, self._insert_key or self._insert_key_of(data), data, timeout_s,
                               parameters=f"wait_ms={_wait_ms(timeout_s)}")
         except RemoteError as err:
             if err.reason == "rate_limited":
                 raise RateLimitedError(err.key, err.reason, err.detail) from None
             raise
         return wire.decode_insert_ack(reply)
+
+    def _insert_key_of(self, data: bytes) -> str:
+        """The insert key of an encoded transition's actor (a protobuf parse, no PNG decoding). Bytes that
+        name no valid actor go to a key no actor may use, and the server answers why they are refused."""
+        try:
+            return self.keys.replay_insert(pb.Transition.FromString(data).actor_id)
+        except Exception:  # not a Transition, or an actor id that is no key chunk: the server judges it
+            return self.keys.replay_insert(_UNIDENTIFIED)
 
     def sample(self, batch_size: int, timeout_s: float = 10.0) -> SampleBatchMsg:
         """A prioritized batch of batch_size transitions (decoded and validated).

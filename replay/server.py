@@ -121,7 +121,7 @@ class ReplayServer:
                 self._threads.append(t)
         s = self._session
         self._declared = [
-            s.declare_queryable(self.keys.replay_insert, self._enqueue("insert", self._handle_insert)),
+            s.declare_queryable(self.keys.replay_inserts, self._enqueue("insert", self._handle_insert)),
             s.declare_queryable(self.keys.replay_sample, self._enqueue("sample", self._handle_sample)),
             s.declare_queryable(self.keys.replay_stats, self._enqueue("control", self._handle_stats)),
             s.declare_subscriber(self.keys.replay_priorities,
@@ -214,7 +214,10 @@ class ReplayServer:
 
     def _kind_of(self, obj: Any) -> str:
         key = str(obj.key_expr)
-        return key.rsplit("/", 1)[-1] if key.startswith(self.keys.root) else "unknown"
+        if not key.startswith(self.keys.root):
+            return "unknown"
+        chunks = key.split("/")
+        return "insert" if chunks[-2:-1] == ["insert"] else chunks[-1]  # .../replay/insert/<actor_id>
 
     def _count(self, kind: str) -> None:
         with self._count_lock:
@@ -235,6 +238,13 @@ class ReplayServer:
         except DecodeError as err:
             self._reject(query, classify_decode_error(str(err)), str(err))
             return
+        key_actor = str(query.key_expr).rsplit("/", 1)[-1]
+        if msg.actor_id != key_actor:
+            # The key is what a secure router's access control checked; the payload must agree with it, or
+            # an actor could insert under another's id through its own key.
+            self._reject(query, "wrong_actor", f"transition of actor {msg.actor_id!r} sent on the insert key "
+                         f"of {key_actor!r}")
+            return
         try:
             ack = self.store.insert(msg, encoded=data, timeout_s=self._wait_s(query))
         except TimeoutError as err:
@@ -247,7 +257,7 @@ class ReplayServer:
         if ack.status == "rejected":
             self.rejections.record("insert", "store_rejected", ack.detail)
         self._count("insert")
-        query.reply(self.keys.replay_insert, wire.encode_insert_ack(ack))
+        query.reply(query.key_expr, wire.encode_insert_ack(ack))
 
     def _handle_sample(self, query: zenoh.Query) -> None:
         try:
