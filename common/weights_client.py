@@ -222,7 +222,11 @@ class ZenohWeightsSource:
             if self._validate is not None:
                 self._validate(tensors)
         except Exception as err:  # DecodeError, or whatever the caller's validate raises
-            self._reject("bad_weights", f"{type(err).__name__}: {err}")
+            version = ann.version if ann is not None else "latest"
+            # Logged once per version (the throttle key holds it): a refused version is rare and its
+            # reason is what an operator needs; the weights in use stay as they are.
+            self._reject("bad_weights", f"weights {version} refused, keeping v{self._returned_version}: "
+                         f"{type(err).__name__}: {err}", throttle_key=f"bad_weights:{version}")
             return
         with self._lock:
             if msg.version <= self._returned_version or (self._ready and msg.version <= self._ready[0]):
@@ -234,13 +238,17 @@ class ZenohWeightsSource:
         log.debug("fetched weights v%d (%d bytes) in %.3f s", msg.version, len(msg.safetensors),
                   time.monotonic() - started)
 
-    def _reject(self, reason: str, detail: str) -> None:
-        """Count a bad message or failed fetch and log it, at most once per _LOG_EVERY_S per reason."""
+    def _reject(self, reason: str, detail: str, throttle_key: str | None = None) -> None:
+        """Count a bad message or failed fetch and log it, at most once per _LOG_EVERY_S per throttle_key
+        (default: the reason)."""
         now = time.monotonic()
+        key = throttle_key or reason
         with self._lock:
             self._counts[f"rejected_{reason}"] += 1
             count = self._counts[f"rejected_{reason}"]
-            if now - self._last_logged.get(reason, -_LOG_EVERY_S) < _LOG_EVERY_S:
+            if now - self._last_logged.get(key, -_LOG_EVERY_S) < _LOG_EVERY_S:
                 return
-            self._last_logged[reason] = now
+            if len(self._last_logged) > 256:  # per-version keys: forget the ones past their throttle window
+                self._last_logged = {k: t for k, t in self._last_logged.items() if now - t < _LOG_EVERY_S}
+            self._last_logged[key] = now
         log.warning("weights source: %s (%d so far): %s", reason, count, detail[:500])
