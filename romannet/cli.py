@@ -14,6 +14,13 @@ from collections.abc import Callable
 from romannet import __version__
 from romannet.common.errors import RomannetError
 from romannet.common.logsetup import setup_logging
+from romannet.deploy import (
+    DEPLOY_EXAMPLE,
+    ROUTER_EXAMPLE,
+    add_deploy_arguments,
+    add_router_arguments,
+    add_zenoh_config_arg,
+)
 
 log = logging.getLogger("romannet.cli")
 
@@ -30,6 +37,8 @@ EXAMPLES = {
     "learner": ("romannet learner --config configs/default.toml --run-dir runs/default/learner "
                 "--connect tcp/127.0.0.1:7447\n  romannet learner --run-dir runs/default/learner --resume "
                 "--connect tcp/127.0.0.1:7447"),
+    "router": ROUTER_EXAMPLE,
+    "deploy": DEPLOY_EXAMPLE,
     "actor": ("romannet actor --config configs/default.toml --run-dir runs/default --actor-id actor-0 "
               "--connect tcp/127.0.0.1:7447\n  romannet actor --run-dir runs/default --actor-id actor-1 "
               "--max-actions 50 --set workspace.resolution_m=0.007 --connect tcp/127.0.0.1:7447"),
@@ -155,6 +164,18 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_router(args: argparse.Namespace) -> int:
+    from romannet.deploy import cmd_router as run
+
+    return run(args)
+
+
+def cmd_deploy(args: argparse.Namespace) -> int:
+    from romannet.deploy import cmd_deploy as run
+
+    return run(args)
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from romannet.up import run
 
@@ -222,8 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to, e.g. a router tcp/10.0.0.2:7447 (repeatable)")
-    p.add_argument("--zenoh-config", metavar="FILE.json5",
-                   help="Zenoh config file (default: peer mode on loopback, multicast scouting off)")
+    add_zenoh_config_arg(p)
 
     p = verb("learner", "train RoManNet from the replay server and publish weights and exploration rates "
              "until SIGTERM/SIGINT (then checkpoint)", cmd_learner)
@@ -236,8 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to: the replay server or a router, e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--zenoh-config", metavar="FILE.json5",
-                   help="Zenoh config file (default: peer mode on loopback, multicast scouting off)")
+    add_zenoh_config_arg(p)
 
     p = verb("actor", "act in the simulator with the newest weights, send every transition to the replay "
              "server (spooled on disk until acknowledged) and record each episode to MCAP, until "
@@ -255,8 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7449 (repeatable)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to: the replay server or a router, e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--zenoh-config", metavar="FILE.json5",
-                   help="Zenoh config file (default: peer mode on loopback, multicast scouting off)")
+    add_zenoh_config_arg(p)
 
     p = verb("eval", "evaluate a checkpoint with the paper's protocol (30 greedy runs per test case, new seeds; "
              "completion, pick success, action efficiency); writes report.md/.json/.png", cmd_eval)
@@ -270,6 +288,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="FILE.png")
     p.add_argument("--window", type=int, default=200, metavar="N", help="sliding window in actions (200)")
     p.add_argument("--labels", nargs="+", metavar="LABEL", help="one label per run (default: directory names)")
+
+    p = verb("router", "run a Zenoh router (zenoh-python in router mode) for a multi-machine fleet until "
+             "SIGTERM/SIGINT; the same config files work with zenohd (docs/deploy.md)", cmd_router)
+    add_router_arguments(p)
+
+    p = verb("deploy", "multi-machine set-up: `certs` (a CA, per-role certificates and secure Zenoh configs), "
+             "`configs` (Zenoh configs only), `check` (is every role of a run reachable?)", cmd_deploy)
+    add_deploy_arguments(p)
     return parser
 
 

@@ -207,6 +207,9 @@ def run(args: argparse.Namespace) -> int:
     clear = ClearLineFilter(display)
     for h in console:
         h.addFilter(clear)
+    if os.environ.pop("ROMANNET_ZENOH_CONFIG", None):  # children inherit os.environ when they start
+        log.info("ignoring $ROMANNET_ZENOH_CONFIG: `romannet up` runs the fleet on this machine (peer mode on "
+                 "loopback); use the service verbs with a router for several machines (docs/deploy.md)")
     replay_ep, learner_ep = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
     log.info("run %s in %s (%s task, %dx%d px, %s robot, %d actor(s), max actions %s%s); replay on %s, "
              "learner on %s", cfg.run_id, run_dir, cfg.task.kind, cfg.workspace.height_px, cfg.workspace.width_px,
