@@ -31,7 +31,8 @@ EXAMPLES = {
     "bench": ("romannet bench inference --json\n  romannet bench replay --json --inserts 2000 --repeats 200\n"
               "  romannet bench sim --json --actions 10 --robots arm,gripper\n"
               "  romannet bench learner --json --batch-sizes 1,4,8 --repeats 10\n"
-              "  romannet bench system --json --actions 30"),
+              "  romannet bench system --json --actions 30\n"
+              "  sudo romannet bench faults --json   # network namespaces: root"),
     "sim": "romannet sim snapshot --task stacking --seed 3 --out snapshot.png --action pick:112:90:30",
     "replay": "romannet replay --config configs/default.toml --dir runs/default/replay --listen tcp/127.0.0.1:7447",
     "learner": ("romannet learner --config configs/default.toml --run-dir runs/default/learner "
@@ -97,11 +98,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from romannet.bench.system import run_system_benchmark
 
         result = run_system_benchmark(actions_per_actor=args.actions, seed=args.seed, **_repeats(args))
+    elif args.what == "faults":
+        from romannet.bench.faults import run_fault_scenario_checked
+
+        result = run_fault_scenario_checked()
     else:  # argparse choices make this unreachable; kept explicit for the error message
         raise SystemExit(f"unknown benchmark {args.what!r}")
     text = json.dumps(result, indent=None if args.json else 2)
     sys.stdout.write(text + "\n")
-    return 0
+    return 1 if result.get("ok") is False else 0
 
 
 def parse_action(text: str):
@@ -211,13 +216,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p)
 
     p = verb("bench", "run a benchmark and print one JSON object (results go in docs/benchmarks.md)", cmd_bench)
-    p.add_argument("what", choices=["inference", "replay", "sim", "learner", "system"],
+    p.add_argument("what", choices=["inference", "replay", "sim", "learner", "system", "faults"],
                    help="inference: the actor's decision latency vs baselines; "
                         "replay: durable inserts/s, sample latency, recovery time over loopback Zenoh; "
                         "sim: simulator actions/s per task, ms per render, heightmap and primitive; "
                         "learner: transitions trained/s per batch size vs the naive eager fp32 step; "
                         "system: fleet actions/s for 1 and 2 gripper actors (`romannet up`), weights latency "
-                        "to 1 and 8 actors, share of actor time in sim/inference/encoding/transport")
+                        "to 1 and 8 actors, share of actor time in sim/inference/encoding/transport; "
+                        "faults: a secure fleet on 5 network-namespace hosts through kill -9 of each service, a "
+                        "cut link and an intruder: transitions lost and duplicated (must be 0), recovery times "
+                        "(root; exit 1 if anything is lost or allowed that must not be)")
     p.add_argument("--json", action="store_true", help="print compact JSON on one line")
     p.add_argument("--repeats", type=int, default=None,
                    help="timed repeats per measurement (median reported); default: each benchmark's own")
