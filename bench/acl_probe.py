@@ -143,8 +143,12 @@ def run_acl_probe(configs: str | Path, actor_ids: Sequence[str] = ("actor-0", "a
 
     with ExitStack() as stack:
         s = stack.enter_context(_sessions(configs, ["replay", "learner", "operator", a, b]))
+        # A second operator session watches live episode topics (the first one replays an episode there).
+        watcher = stack.enter_context(_sessions(configs, ["operator"]))["operator"]
         inserts, samples, priorities = _Inbox(), _Inbox(), _Inbox()
         fake_fetches, stolen, b_heard, sniffed = _Inbox(), _Inbox(), _Inbox(), _Inbox()
+        live_seen, live_stolen = _Inbox(), _Inbox()
+        live = f"{keys.root}/actor/{b}/live"
         declared: list[Any] = [
             # The real roles.
             s["replay"].declare_queryable(keys.replay_inserts, inserts.query_cb(b"replay-ack")),
@@ -159,6 +163,8 @@ def run_acl_probe(configs: str | Path, actor_ids: Sequence[str] = ("actor-0", "a
             s[a].declare_queryable(keys.replay_sample, fake_fetches.query_cb(b"fake-batch")),
             s[a].declare_queryable(keys.replay_insert(b), stolen.query_cb(b"stolen-ack")),
             s[a].declare_subscriber(f"{keys.root}/**", sniffed.sample_cb()),
+            s[a].declare_subscriber(f"{live}/**", live_stolen.sample_cb()),
+            watcher.declare_subscriber(f"{keys.root}/actor/*/live/**", live_seen.sample_cb()),
             s[a].liveliness().declare_token(keys.actor_alive(a)),
             s[a].liveliness().declare_token(keys.actor_alive(b)),  # impersonation
         ]
@@ -184,13 +190,14 @@ def run_acl_probe(configs: str | Path, actor_ids: Sequence[str] = ("actor-0", "a
 
         s["learner"].put(keys.weights_announce, b"learner-announcement")
         s["learner"].put(keys.exploration, b"learner-rate")
+        s["operator"].put(f"{live}/camera/color", b"live-frame")
         s[a].put(keys.weights_announce, b"forged-announcement")
         s[a].put(keys.exploration, b"forged-rate")
         s[a].put(keys.replay_priorities, b"forged-priorities")
         s["learner"].put(keys.replay_priorities, b"learner-priorities")
         s["replay"].put(keys.weights_announce, b"replay-announcement")
         _wait_until(lambda: b"learner-rate" in b_heard.payloads() and b"learner-priorities" in
-                    priorities.payloads(), ARRIVAL_TIMEOUT_S)
+                    priorities.payloads() and b"live-frame" in live_seen.payloads(), ARRIVAL_TIMEOUT_S)
         time.sleep(SETTLE_S)  # the forged messages went out beside the learner's: as much time to arrive
         heard = b_heard.payloads()
         check("learner publishes weights announcements and rates", "allowed",
@@ -200,6 +207,9 @@ def run_acl_probe(configs: str | Path, actor_ids: Sequence[str] = ("actor-0", "a
         check("replay server publishes weights announcements", "denied", seen(b"replay-announcement" in heard))
         check("learner publishes priorities", "allowed", seen(b"learner-priorities" in priorities.payloads()))
         check(f"{a} publishes priorities", "denied", seen(b"forged-priorities" in priorities.payloads()))
+        check(f"operator replays {b}'s episode live and watches it", "allowed",
+              seen(b"live-frame" in live_seen.payloads()))
+        check(f"{a} watches {b}'s live episode stream", "denied", seen(b"live-frame" in live_stolen.payloads()))
         others = [p for p in sniffed.payloads() if not p.startswith(b"forged")]  # A hears its own puts locally
         check(f"{a} subscribes to the run's traffic", "denied", seen(bool(others)))
 

@@ -311,7 +311,8 @@ def _scenario(fleet: Fleet, link_cut_s: float, startup_timeout_s: float, recover
     gone = fleet.wait_for(f"{victim}'s liveliness token to vanish",
                           lambda: _token_event(fleet, victim, "delete", t_kill), recovery_s, ("router", "watch"))
     fleet.wait_for(f"{ACTORS[1]} to keep getting acknowledgements",
-                   lambda: int(fleet.status(ACTORS[1]).get("acked", 0)) > other_acked, recovery_s, everyone[:-2])
+                   lambda: int(fleet.status(ACTORS[1]).get("acked", 0)) > other_acked, recovery_s,
+                   ("router", "replay", "learner", ACTORS[1]))
     t_other = time.monotonic()
     fleet.start_actor(victim)
     fleet.wait_for(f"the restarted {victim} to resend its spool and act",

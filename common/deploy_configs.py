@@ -116,8 +116,11 @@ def _role_rules(role: str) -> list[dict[str, Any]]:
         return [
             _rule("operator-controls", ["query"], "ingress", ["replay/stats", _ADMIN_SPACE]),
             _rule("operator-gets-answers", ["reply"], "egress", ["replay/stats", _ADMIN_SPACE]),
-            _rule("operator-watches", ["declare_subscriber"], "ingress", ["weights/announce", "exploration"]),
-            _rule("operator-sees", ["put"], "egress", ["weights/announce", "exploration"]),
+            _rule("operator-watches", ["declare_subscriber"], "ingress",
+                  ["weights/announce", "exploration", "actor/*/live/**"]),
+            _rule("operator-sees", ["put"], "egress", ["weights/announce", "exploration", "actor/*/live/**"]),
+            # `romannet mcap play --zenoh`: recorded episodes replayed live on the actors' episode topics.
+            _rule("operator-replays-episodes", ["put"], "ingress", ["actor/*/live/**"]),
             _rule("operator-watches-liveliness", ["declare_liveliness_subscriber", "liveliness_query"],
                   "ingress", ["**"]),
             _rule("operator-sees-liveliness", ["liveliness_token"], "egress", ["**"]),

@@ -76,6 +76,10 @@ def run_router(config: zenoh.Config, stop: threading.Event,
                  ", ".join(map(str, endpoints)) or "nothing",
                  "on" if tls.get("enable_mtls") else "off",
                  f"on, default {access.get('default_permission')}" if access.get("enabled") else "off")
+        if not access.get("enabled"):
+            log.warning("no access control: any client that reaches %s may publish and query anything; on a "
+                        "shared network use the secure profile (romannet deploy certs, docs/deploy.md)",
+                        ", ".join(map(str, endpoints)) or "this router")
         if ready is not None:
             ready(session)
         while not stop.wait(1.0):
