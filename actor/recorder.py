@@ -38,16 +38,16 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from romannet.common.episode_file import STEP_SCHEMA, STEP_TOPIC, TRANSITION_TOPIC
 from romannet.common.imagecodec import depth_m_to_units, encode_color_png
 from romannet.common.interfaces import Observation
 from romannet.common.wire import mcap_schema
 
 log = logging.getLogger(__name__)
 
-TRANSITION_TOPIC = "/transition"
-STEP_TOPIC = "/step"
+__all__ = ["EpisodeRecorder", "colorize", "count_steps", "STEP_TOPIC", "TRANSITION_TOPIC"]
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-_STEP_SCHEMA = json.dumps({"type": "object", "title": "romannet.actor.Step",
+_STEP_SCHEMA = json.dumps({"type": "object", "title": STEP_SCHEMA,
                            "description": "One executed action of an actor, with its outcome and policy state"})
 
 
@@ -104,7 +104,7 @@ class EpisodeRecorder:
         self._transition_channel = self._writer.register_channel(
             TRANSITION_TOPIC, "protobuf", self._writer.register_schema(name, encoding, data))
         self._step_channel = self._writer.register_channel(
-            STEP_TOPIC, "json", self._writer.register_schema("romannet.actor.Step", "jsonschema",
+            STEP_TOPIC, "json", self._writer.register_schema(STEP_SCHEMA, "jsonschema",
                                                             _STEP_SCHEMA.encode()))
         meta = dict(metadata)
         meta.setdefault("camera_depth_units", "mm (16UC1)")
