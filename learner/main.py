@@ -2,12 +2,15 @@
 
     romannet learner --config run.toml --run-dir runs/run-1 --connect tcp/127.0.0.1:7447
     romannet learner --run-dir runs/run-1 --resume --connect tcp/127.0.0.1:7447
+    romannet learner --config run.toml --run-dir runs/off-1 --offline recordings/ --max-updates 2000 ...
 
 The TOML file is the fleet config (configs/default.toml): run_id picks the keys, [workspace] the heightmap
 size every sampled transition must have, [learner] the training (common/config_learner.py). With --resume
 and no --config, the run directory's saved config.toml is used (plus any --set overrides), so a resumed run
-trains what the interrupted one did. A signal sets a stop event; the learner finishes the step under way,
-publishes its weights, writes a checkpoint, closes the session, and the process exits 0.
+trains what the interrupted one did. --offline DIR feeds MCAP episode recordings to the replay server
+first (learner/offline.py); --max-updates N stops at update N as a signal would. A signal sets a stop
+event; the learner finishes the step under way, publishes its weights, writes a checkpoint, closes the
+session, and the process exits 0.
 """
 
 from __future__ import annotations
@@ -24,7 +27,8 @@ from romannet.common.zenoh_session import make_config, open_session
 
 from .batches import TolerantReplayClient
 from .checkpoint import latest_checkpoint
-from .service import run_learner
+from .offline import prefill
+from .service import ServiceOptions, run_learner
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +67,10 @@ def run(args: argparse.Namespace) -> int:
     with stop_on_signals(stop, "finishing the current step, then checkpoint and exit"):
         with open_session(zenoh_config) as session:
             client = TolerantReplayClient(session, config.run_id, expected_shape=(ws.height_px, ws.width_px))
-            run_learner(config, run_dir, client, session, stop, resume=args.resume,
+            if getattr(args, "offline", None):
+                prefill(client, args.offline, stop)
+            options = ServiceOptions(max_updates=max(0, getattr(args, "max_updates", 0) or 0))
+            run_learner(config, run_dir, client, session, stop, resume=args.resume, options=options,
                         ready=lambda trainer: log.info("learner ready (run %s, dir %s, update %d)",
                                                        config.run_id, run_dir, trainer.updates))
     return 0

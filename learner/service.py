@@ -58,7 +58,8 @@ class ServiceOptions:
     sample_timeout_s: deadline of one sample request, seconds (also bounds how long a stop waits);
     stats_every_s: how often replay stats are read for the min-size and ratio checks; idle_wait_s: pause
     while waiting for data; image_every_updates: action images to TensorBoard (0 = never);
-    plot_every_s: learning-curve PNG redraws; log_every_s: progress log lines.
+    plot_every_s: learning-curve PNG redraws; log_every_s: progress log lines; max_updates: stop once the
+    update count reaches it, like a stop signal (0 = no limit; offline training runs to a set length).
     """
 
     sample_timeout_s: float = 2.0
@@ -67,6 +68,7 @@ class ServiceOptions:
     image_every_updates: int = 100
     plot_every_s: float = 60.0
     log_every_s: float = 30.0
+    max_updates: int = 0
 
 
 class _Counters:
@@ -143,6 +145,9 @@ def _loop(trainer: Trainer, client: ReplayClient, publisher: WeightsPublisher, m
     step_times: deque[float] = deque(maxlen=20)  # monotonic end times of recent steps, for updates/s
     next_log_s = time.monotonic() + opts.log_every_s
     while not stop.is_set():
+        if 0 < opts.max_updates <= trainer.updates:
+            log.info("reached %d updates (max_updates): stopping", trainer.updates)
+            break
         if not gate.ready(trainer.updates):
             t0 = time.monotonic()
             stop.wait(opts.idle_wait_s)
