@@ -100,7 +100,14 @@ def make_config(config_file: str | Path | None = None, listen: Sequence[str] | N
 @contextlib.contextmanager
 def open_session(config: zenoh.Config | None = None) -> Iterator[zenoh.Session]:
     """Open a session (default: make_config()) and close it on exit, also on errors."""
-    session = zenoh.open(config if config is not None else make_config())
+    config = config if config is not None else make_config()
+    if json.loads(config.get_json("mode") or "null") == "client":
+        # A client config may wait for its router without end (connect.timeout_ms = -1): say so first.
+        endpoints = json.loads(config.get_json("connect/endpoints") or "[]")
+        if isinstance(endpoints, dict):  # zenoh's mode-dependent form
+            endpoints = endpoints.get("client", [])
+        log.info("connecting to the Zenoh router at %s", ", ".join(map(str, endpoints)) or "(no endpoint)")
+    session = zenoh.open(config)
     try:
         yield session
     finally:
