@@ -17,6 +17,7 @@ fails at start-up with a clear message instead of silently addressing the wrong 
 | .../weights/fetch                     | queryable (get)       | (version parameter) -> Weights           |
 | .../exploration                       | publisher (put)       | ExplorationRate                          |
 | .../actor/<actor_id>/alive            | liveliness token      |                                          |
+| .../actor/<actor_id>/live/<topic>     | publisher (put)       | an episode topic's MCAP message bytes    |
 | .../learner/alive                     | liveliness token      |                                          |
 """
 
@@ -114,6 +115,20 @@ class RunKeys:
     def actors_alive(self) -> str:
         """Key expression matching every actor's liveliness token (for liveliness get / subscriber)."""
         return f"{self.root}/actor/*/alive"
+
+    # ------------------------------------------------------------------------------ live episodes
+    def actor_live(self, actor_id: str, topic: str) -> str:
+        """Publisher: an episode topic of one actor, live (`romannet mcap play --zenoh` publishes recorded
+        episodes there; docs/recording.md). "/camera/color" -> `.../actor/<actor_id>/live/camera/color`;
+        the payload is the bytes the topic's MCAP messages hold (Foxglove image protobufs, the Transition,
+        the /step JSON)."""
+        chunks = [check_chunk("topic", chunk) for chunk in topic.strip("/").split("/")]
+        return f"{self.root}/actor/{check_chunk('actor_id', actor_id)}/live/{'/'.join(chunks)}"
+
+    @property
+    def actors_live(self) -> str:
+        """Key expression matching every actor's live episode topics (for a subscriber)."""
+        return f"{self.root}/actor/*/live/**"
 
     @property
     def learner_alive(self) -> str:

@@ -37,7 +37,8 @@ EXAMPLES = {
     "replay": "romannet replay --config configs/default.toml --dir runs/default/replay --listen tcp/127.0.0.1:7447",
     "learner": ("romannet learner --config configs/default.toml --run-dir runs/default/learner "
                 "--connect tcp/127.0.0.1:7447\n  romannet learner --run-dir runs/default/learner --resume "
-                "--connect tcp/127.0.0.1:7447"),
+                "--connect tcp/127.0.0.1:7447\n  romannet learner --config configs/default.toml --run-dir "
+                "runs/offline/learner --offline runs/demo/episodes --max-updates 2000 --connect tcp/127.0.0.1:7447"),
     "router": ROUTER_EXAMPLE,
     "deploy": DEPLOY_EXAMPLE,
     "actor": ("romannet actor --config configs/default.toml --run-dir runs/default --actor-id actor-0 "
@@ -47,6 +48,10 @@ EXAMPLES = {
              "  romannet eval runs/clutter --task clutter --objects 30 --object-set novel --protocol frozen\n"
              "  romannet eval runs/clutter --task arrangement"),
     "plot": "romannet plot runs/abl-baseline runs/abl-tpg runs/stack-h4 --labels baseline +TPG +TPG+LAE --out abl.png",
+    "mcap": ("romannet mcap inspect runs/demo/episodes\n  romannet mcap play runs/demo/episodes/actor-0/ep000000.mcap "
+             "--foxglove 8765\n  romannet mcap feed runs/demo/episodes --run-id offline-1 --connect "
+             "tcp/127.0.0.1:7447\n  romannet mcap export runs/demo/episodes/actor-0/ep000000.mcap --video ep0.mp4\n"
+             "  romannet mcap rescore runs/demo/episodes --set reward.push_weight=0.5 --out rescored/"),
 }
 
 
@@ -181,6 +186,12 @@ def cmd_deploy(args: argparse.Namespace) -> int:
     return run(args)
 
 
+def cmd_mcap(args: argparse.Namespace) -> int:
+    from romannet.mcaptools.cli import run
+
+    return run(args)
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from romannet.up import run
 
@@ -265,6 +276,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to: the replay server or a router, e.g. tcp/127.0.0.1:7447")
     add_zenoh_config_arg(p)
+    p.add_argument("--offline", action="append", default=[], metavar="FILE|DIR",
+                   help="first feed these MCAP episode recordings to the replay server (acknowledged, idempotent), "
+                        "then train: without actors, or mixed with live ones (repeatable)")
+    p.add_argument("--max-updates", type=int, default=0, metavar="N",
+                   help="stop (checkpoint, exit 0) once the learner reaches update N (default: 0 = until a signal)")
 
     p = verb("actor", "act in the simulator with the newest weights, send every transition to the replay "
              "server (spooled on disk until acknowledged) and record each episode to MCAP, until "
@@ -304,6 +320,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = verb("deploy", "multi-machine set-up: `certs` (a CA, per-role certificates and secure Zenoh configs), "
              "`configs` (Zenoh configs only), `check` (is every role of a run reachable?)", cmd_deploy)
     add_deploy_arguments(p)
+
+    from romannet.mcaptools.cli import SUMMARY as MCAP_SUMMARY
+    from romannet.mcaptools.cli import add_arguments as add_mcap_arguments
+
+    add_mcap_arguments(verb("mcap", MCAP_SUMMARY, cmd_mcap))
     return parser
 
 

@@ -43,8 +43,14 @@ def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
     from romannet.common.config import load_config
     from romannet.common.configbase import write_toml
 
-    if args.actors < 1:
-        raise RomannetError(f"--actors {args.actors}: at least one actor is needed")
+    recordings = getattr(args, "from_recordings", [])
+    if args.actors < (0 if recordings else 1):
+        raise RomannetError(f"--actors {args.actors}: at least one actor is needed (or 0 with --from-recordings)")
+    if args.actors == 0 and args.max_actions:
+        raise RomannetError("--max-actions counts actors' actions: with --actors 0 the run goes until Ctrl-C")
+    for path in recordings:
+        if not Path(path).exists():
+            raise RomannetError(f"--from-recordings {path}: no such file or directory")
     if args.max_actions < 0 or (0 < args.max_actions < args.actors):
         raise RomannetError(f"--max-actions {args.max_actions}: use 0 (no limit) or at least one action per "
                             f"actor (>= {args.actors})")

@@ -2,6 +2,7 @@
 
     romannet up --actors 2 --max-actions 2000
     romannet up --name run-1 --resume
+    romannet up --name offline-1 --actors 0 --from-recordings runs/run-1/episodes   (learner/offline.py)
 
 Each component runs as its own process (`python -m romannet.cli <verb> ...`: a fresh interpreter, so no
 Zenoh session crosses a fork), with its own Zenoh session in peer mode on loopback and multicast
@@ -73,7 +74,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", choices=["clutter", "arrangement", "stacking"], help="task (default: the config's, "
                    "clutter)")
     p.add_argument("--goal-height", type=int, metavar="N", help="stacking: cubes in the goal stack (2..5)")
-    p.add_argument("--actors", type=int, default=2, metavar="N", help="simulated actors (default: 2)")
+    p.add_argument("--actors", type=int, default=2, metavar="N", help="simulated actors (default: 2; 0 with "
+                   "--from-recordings: train on the recordings only)")
+    p.add_argument("--from-recordings", action="append", default=[], metavar="FILE|DIR",
+                   help="pre-fill the replay server with these MCAP episode recordings (the learner feeds them, "
+                   "acknowledged and idempotent, before it trains); with actors, recorded and live experience "
+                   "mix (repeatable)")
     p.add_argument("--max-actions", type=int, default=0, metavar="N",
                    help="total actions over the whole fleet, split evenly between the actors; the launcher "
                    "stops everything cleanly when every actor has done its share (default: 0 = until Ctrl-C)")
@@ -91,8 +97,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def split_actions(total: int, actors: int) -> list[int]:
     """total split into `actors` near-equal shares (the first ones take the remainder); 0 = unlimited."""
-    if total <= 0:
-        return [0] * actors
+    if total <= 0 or actors <= 0:
+        return [0] * max(actors, 0)
     base, extra = divmod(total, actors)
     return [base + (1 if i < extra else 0) for i in range(actors)]
 
@@ -114,8 +120,10 @@ def build_specs(run_dir: Path, cfg: Config, args: argparse.Namespace, replay_ep:
     def learner_argv() -> list[str]:
         # A (re)start over a checkpoint must resume it: the learner refuses to start fresh over one.
         resume = ["--resume"] if (run_dir / "checkpoints" / "LATEST").is_file() else []
+        recordings = getattr(args, "from_recordings", [])
+        offline = [arg for path in recordings for arg in ("--offline", str(Path(path).resolve()))]
         return [*base, "learner", "--config", config, "--run-dir", str(run_dir), "--listen", learner_ep,
-                "--connect", replay_ep, *resume]
+                "--connect", replay_ep, *resume, *offline]
 
     specs = [
         ChildSpec("replay", [*base, "replay", "--config", config, "--dir", str(run_dir / "replay"),

@@ -1,0 +1,1 @@
+"""`romannet mcap inspect|play|feed|export|rescore`: tools for the actor's MCAP episode files."""
