@@ -1,7 +1,7 @@
 """Counting for the fault scenario: transitions sent by the actors, acknowledged to them, stored by the replay.
 
     ledger = Ledger(run_dir, ("actor-0", "actor-1"))
-    ledger.before_kill("actor-0", status); ledger.after_kill("actor-0", spool_keys(run_dir, "actor-0"))
+    ledger.killed("actor-0", status, spool_keys(run_dir, "actor-0"), next_episode(run_dir, "actor-0"))
     ledger.final("actor-0", status)          # for each actor once every process has stopped cleanly
     counts = ledger.reconcile(config_path)    # sent, acknowledged, stored, duplicates, lost, ...
 
@@ -50,6 +50,12 @@ def spool_keys(run_dir: Path, actor_id: str) -> set[Key]:
     return keys
 
 
+def next_episode(run_dir: Path, actor_id: str) -> int:
+    """The episode index the actor's next process will start with (its state.json, written before an
+    episode starts): every episode of the processes so far has a lower index."""
+    return int(json.loads((run_dir / "actors" / actor_id / "state.json").read_text())["next_episode"])
+
+
 def _episode_index(episode_id: str) -> int:
     match = re.fullmatch(r"ep(\d+)", episode_id or "")
     return int(match.group(1)) if match else -1
@@ -60,6 +66,7 @@ class _Process:
     status: dict[str, Any]
     killed: bool
     spool_at_kill: set[Key] = field(default_factory=set)
+    next_episode: int = 0  # killed processes: every episode of theirs has a lower index
 
 
 class Ledger:
@@ -70,11 +77,11 @@ class Ledger:
         self.actor_ids = actor_ids
         self._procs: dict[str, list[_Process]] = {a: [] for a in actor_ids}
 
-    def before_kill(self, actor_id: str, status: dict[str, Any]) -> None:
-        self._procs[actor_id].append(_Process(dict(status), killed=True))
-
-    def after_kill(self, actor_id: str, spooled: set[Key]) -> None:
-        self._procs[actor_id][-1].spool_at_kill = set(spooled)
+    def killed(self, actor_id: str, status: dict[str, Any], spooled: set[Key], next_episode: int) -> None:
+        """A process of actor_id was SIGKILLed: its last status file, the keys left in its spool and the
+        next episode index in its state.json (read right after the kill, before any restart)."""
+        self._procs[actor_id].append(_Process(dict(status), killed=True, spool_at_kill=set(spooled),
+                                              next_episode=next_episode))
 
     def final(self, actor_id: str, status: dict[str, Any]) -> None:
         self._procs[actor_id].append(_Process(dict(status), killed=False))
@@ -103,8 +110,7 @@ class Ledger:
             for proc in self._procs[actor_id]:
                 status = proc.status
                 if proc.killed:
-                    last = _episode_index(status.get("episode_id", ""))
-                    own = {k for k in mine if first_episode <= _episode_index(k[1]) <= last}
+                    own = {k for k in mine if first_episode <= _episode_index(k[1]) < proc.next_episode}
                     count = len(own | proc.spool_at_kill)
                     reported = int(status.get("actions", 0))
                     if not reported <= count <= reported + 1:
@@ -115,7 +121,7 @@ class Ledger:
                         problems.append(f"{actor_id}: {len(missing)} transition(s) spooled at the kill never "
                                         "stored")
                     sent += count
-                    first_episode = last + 1
+                    first_episode = proc.next_episode
                 else:
                     sent += int(status.get("actions", 0))
                     if status.get("state") != "stopped":

@@ -39,7 +39,7 @@ from typing import Any
 
 from romannet.common.errors import RomannetError
 
-from .fault_ledger import Ledger, actor_status, spool_keys
+from .fault_ledger import Ledger, actor_status, next_episode, spool_keys
 from .netns import NetnsLab, netns_unavailable_reason
 
 log = logging.getLogger(__name__)
@@ -268,7 +268,9 @@ def _scenario(fleet: Fleet, link_cut_s: float, startup_timeout_s: float, recover
     fleet.wait_for("a learner checkpoint", lambda: (fleet.run_dir / "checkpoints" / "LATEST").is_file(),
                    recovery_s, everyone)
     t_kill = fleet.kill9("learner")
-    newest = max(_announced(fleet, before_t=t_kill), default=0)  # the killed learner's last weights
+    # The killed learner's newest weights: announced (the watcher's record) or already held by an actor.
+    newest = max([*_announced(fleet, before_t=t_kill), *(int(fleet.status(a).get("weights_version", 0))
+                                                         for a in ACTORS)])
     fleet.start_learner(resume=True)
     t_up = fleet.wait_for("the restarted learner's liveliness token",
                           lambda: _token_event(fleet, "learner", "put", t_kill), recovery_s, everyone)
@@ -305,9 +307,10 @@ def _scenario(fleet: Fleet, link_cut_s: float, startup_timeout_s: float, recover
     # 4. kill -9 actor-0: its liveliness must vanish, the rest must go on; then it restarts and resends.
     victim = ACTORS[0]
     other_acked = int(fleet.status(ACTORS[1]).get("acked", 0))
-    ledger.before_kill(victim, fleet.status(victim))
     t_kill = fleet.kill9(victim)
-    ledger.after_kill(victim, spool_keys(fleet.run_dir, victim))
+    # What the dead process left: its last status file and its spool (nobody touches them until restart).
+    ledger.killed(victim, fleet.status(victim), spool_keys(fleet.run_dir, victim),
+                  next_episode(fleet.run_dir, victim))
     gone = fleet.wait_for(f"{victim}'s liveliness token to vanish",
                           lambda: _token_event(fleet, victim, "delete", t_kill), recovery_s, ("router", "watch"))
     fleet.wait_for(f"{ACTORS[1]} to keep getting acknowledgements",
