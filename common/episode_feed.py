@@ -94,7 +94,8 @@ class FeedReport:
             self.rejected += 1
             why = reason or (ack.detail if ack is not None else "") or "rejected"
             self.rejected_reasons[why.split(":")[0][:80]] += 1
-            log.warning("the replay server refused a transition: %.300s", why)
+            if self.rejected <= 5 or self.rejected % 100 == 0:  # not a line per transition of a wrong-size run
+                log.warning("the replay server refused a transition (%d so far): %.300s", self.rejected, why)
 
 
 def insert_with_retry(client: EncodedInserter, data: bytes, opts: FeedOptions,

@@ -148,6 +148,12 @@ def test_feed_round_trip_exactly_once_bit_equal_and_idempotent(recordings, tmp_p
     code, again, _ = _feed(capsys, endpoint, root)  # the same files again: nothing is added
     assert code == 0
     assert (again["accepted"], again["duplicates"], again["replay_size"]) == (0, len(expected), len(expected))
+    # Rescored experience is new experience (new episode ids) and feeding it twice adds it once.
+    for new in (len(expected), 0):
+        code = main(["mcap", "rescore", str(root), "--set", "reward.push_weight=0.5", "--feed", "--connect",
+                     endpoint, "--json"])
+        feed = json.loads(capsys.readouterr().out)["feed"]
+        assert code == 0 and (feed["accepted"], feed["duplicates"]) == (new, len(expected) - new)
     assert server.stop() == 0, server.output()
     stored = []
     for segment in sorted((tmp_path / "replay").glob("segment-*.mcap")):
@@ -156,7 +162,10 @@ def test_feed_round_trip_exactly_once_bit_equal_and_idempotent(recordings, tmp_p
     # The log keeps each transition as received, plus the priority it was inserted with (protobuf field 23,
     # appended: replay/recovery.py priority_suffix), so the recorded bytes are a prefix of every record.
     assert all(len(r) > 10 and r[-10:-8] == b"\xb9\x01" for r in stored)
-    assert sorted(r[:-10] for r in stored) == sorted(expected)  # every transition exactly once, bit-equal
+    rescored = [r for r in stored if ".rs-" in parse_transition(r).episode_id]
+    assert len(rescored) == len(expected)
+    originals = sorted(r[:-10] for r in stored if r not in rescored)
+    assert originals == sorted(expected)  # every recorded transition exactly once, bit-equal
 
 
 # ------------------------------------------------------------------------------------------------------ play
