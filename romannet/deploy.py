@@ -28,7 +28,7 @@ ENV_ZENOH_CONFIG = "ROMANNET_ZENOH_CONFIG"
 ROUTER_EXAMPLE = ("romannet router --zenoh-config deploy/zenoh/router.json5\n"
                   "  romannet router --zenoh-config site/zenoh/router.json5   # after `romannet deploy certs site`")
 DEPLOY_EXAMPLE = ("romannet deploy certs site --actors 2 --router-host 10.0.0.2 --install-dir /etc/romannet\n"
-                  "  romannet deploy configs deploy/zenoh --actors 2\n"
+                  "  romannet deploy configs site/zenoh --actors 2 --router-host 10.0.0.2   # plain TCP\n"
                   "  romannet deploy check --zenoh-config /etc/romannet/zenoh/operator.json5 --run-id run-1 "
                   "--expect-actors 2")
 
