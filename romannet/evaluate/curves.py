@@ -16,16 +16,15 @@ from __future__ import annotations
 
 import json
 import logging
-import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-log = logging.getLogger(__name__)
+from romannet.common.episode_file import STEP_TOPIC, EpisodeFileError, EpisodeReader
 
-STEP_TOPIC = "/step"
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -39,28 +38,14 @@ class TrainingAction:
 
 
 def read_step_records(path: Path) -> list[dict]:
-    """The /step JSON records of one episode file, up to its last whole chunk."""
-    from mcap.exceptions import EndOfFile, McapError
-    from mcap.records import Channel, Message
-    from mcap.stream_reader import StreamReader
-
-    out: list[dict] = []
-    step_channels: set[int] = set()
-    with open(path, "rb") as f:
-        # Streamed record by record from the start, not through the summary: an episode being written or
-        # cut short by a crash has no (valid) summary, and its whole chunks must still count.
-        try:
-            for record in StreamReader(f, skip_magic=False, validate_crcs=True).records:
-                if isinstance(record, Channel) and record.topic == STEP_TOPIC:
-                    step_channels.add(record.id)
-                elif isinstance(record, Message) and record.channel_id in step_channels:
-                    step = json.loads(record.data)
-                    step["_t_ns"] = record.log_time
-                    out.append(step)
-        except EndOfFile:  # an episode still being written, or cut by a crash: its whole chunks count
-            log.debug("%s ends inside a record (being written, or cut short): %d step(s) read", path, len(out))
-        except (McapError, ValueError, OSError, struct.error) as err:  # corrupt from some point on
-            log.warning("%s: read %d step(s), then stopped at an unreadable part (%s)", path, len(out), err)
+    """The /step JSON records of one episode file, up to its last whole chunk (common.episode_file reads
+    front to back, so an episode being written or cut short by a crash still counts)."""
+    reader = EpisodeReader(path)
+    out = []
+    for message in reader.messages([STEP_TOPIC]):
+        step = json.loads(message.data)
+        step["_t_ns"] = message.log_time_ns
+        out.append(step)
     return out
 
 
@@ -85,7 +70,7 @@ def run_actions(run_dir: Path) -> tuple[list[TrainingAction], dict]:
     for path in files:
         try:
             records = read_step_records(path)
-        except Exception as err:  # not MCAP at all, or unreadable: one line, and go on
+        except (EpisodeFileError, ValueError) as err:  # not an episode, or a broken record: one line, go on
             log.warning("%s skipped: %s", path, err)
             continue
         if not records:
