@@ -4,7 +4,8 @@ A site (CA, certificates, configs) is generated per module with the router on 12
 The secure profile's access-control policy is probed with real sessions of every identity (the same probe
 `romannet bench faults` runs across network namespaces); a real `romannet replay` server refuses a
 transition sent on another actor's insert key; `romannet deploy check` reports what is alive; the plain
-profile's router and clients turn every put of the project's keys into BLOCK congestion control.
+profile's router and clients turn every put of the project's keys into BLOCK congestion control; a frozen
+client is dropped within the 3 s lease and reconnects by itself.
 """
 
 from __future__ import annotations
@@ -207,3 +208,52 @@ def test_router_refuses_unusable_configs(tmp_path: Path, case: str) -> None:
     assert done.returncode == 2, done.stderr
     expected = {"missing": "does not exist", "peer": "needs mode \"router\"", "bad_key": "rulez"}[case]
     assert expected in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def test_a_hung_client_is_dropped_within_the_lease_and_comes_back(tmp_path: Path) -> None:
+    """SIGSTOP freezes a client (no keep-alives): its liveliness token must vanish within the configs' 3 s
+    lease (plus a margin); after SIGCONT it reconnects by itself and its token is back."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    write_site_configs(tmp_path, SiteLayout(router_endpoints=(endpoint,), listen=(endpoint,)))
+    key = RunKeys(RUN).actor_alive("actor-0")
+    router = Proc(_cli("router", "--zenoh-config", str(tmp_path / "router.json5")), tmp_path / "router.log")
+    hung = None
+    try:
+        router.wait_for_output("listening on")
+        code = ("import sys, time, zenoh\n"
+                "s = zenoh.open(zenoh.Config.from_file(sys.argv[1]))\n"
+                "t = s.liveliness().declare_token(sys.argv[2])\n"
+                "print('token up', flush=True)\n"
+                "time.sleep(120)\n")
+        hung = Proc([sys.executable, "-c", code, str(tmp_path / "actor.json5"), key], tmp_path / "hung.log")
+        hung.wait_for_output("token up")
+        events: list[tuple[float, zenoh.SampleKind]] = []
+        with _session(tmp_path, "operator") as watcher:
+            sub = watcher.liveliness().declare_subscriber(
+                key, lambda s: events.append((time.monotonic(), s.kind)), history=True)
+            deadline = time.monotonic() + 10
+            while not events and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert events and events[-1][1] == zenoh.SampleKind.PUT, events
+            stopped = time.monotonic()
+            hung.proc.send_signal(signal.SIGSTOP)
+            try:
+                deadline = time.monotonic() + 15
+                while events[-1][1] != zenoh.SampleKind.DELETE and time.monotonic() < deadline:
+                    time.sleep(0.05)
+            finally:
+                hung.proc.send_signal(signal.SIGCONT)
+            gone_after_s = events[-1][0] - stopped
+            assert events[-1][1] == zenoh.SampleKind.DELETE, events
+            assert 1.0 < gone_after_s < 6.0, gone_after_s  # lease 3 s; keep-alives every 0.75 s
+            deadline = time.monotonic() + 15
+            while events[-1][1] != zenoh.SampleKind.PUT and time.monotonic() < deadline:
+                time.sleep(0.05)
+            sub.undeclare()
+        assert events[-1][1] == zenoh.SampleKind.PUT, events  # reconnected, token declared again
+    finally:
+        if hung is not None:
+            hung.proc.kill()
+            hung.stop()
+        assert router.stop() == 0, router.output()
