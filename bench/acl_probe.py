@@ -148,7 +148,6 @@ def run_acl_probe(configs: str | Path, actor_ids: Sequence[str] = ("actor-0", "a
         inserts, samples, priorities = _Inbox(), _Inbox(), _Inbox()
         fake_fetches, stolen, b_heard, sniffed = _Inbox(), _Inbox(), _Inbox(), _Inbox()
         live_seen, live_stolen = _Inbox(), _Inbox()
-        live = f"{keys.root}/actor/{b}/live"
         declared: list[Any] = [
             # The real roles.
             s["replay"].declare_queryable(keys.replay_inserts, inserts.query_cb(b"replay-ack")),
@@ -163,8 +162,8 @@ def run_acl_probe(configs: str | Path, actor_ids: Sequence[str] = ("actor-0", "a
             s[a].declare_queryable(keys.replay_sample, fake_fetches.query_cb(b"fake-batch")),
             s[a].declare_queryable(keys.replay_insert(b), stolen.query_cb(b"stolen-ack")),
             s[a].declare_subscriber(f"{keys.root}/**", sniffed.sample_cb()),
-            s[a].declare_subscriber(f"{live}/**", live_stolen.sample_cb()),
-            watcher.declare_subscriber(f"{keys.root}/actor/*/live/**", live_seen.sample_cb()),
+            s[a].declare_subscriber(f"{keys.root}/actor/{b}/live/**", live_stolen.sample_cb()),
+            watcher.declare_subscriber(keys.actors_live, live_seen.sample_cb()),
             s[a].liveliness().declare_token(keys.actor_alive(a)),
             s[a].liveliness().declare_token(keys.actor_alive(b)),  # impersonation
         ]
@@ -190,7 +189,7 @@ def run_acl_probe(configs: str | Path, actor_ids: Sequence[str] = ("actor-0", "a
 
         s["learner"].put(keys.weights_announce, b"learner-announcement")
         s["learner"].put(keys.exploration, b"learner-rate")
-        s["operator"].put(f"{live}/camera/color", b"live-frame")
+        s["operator"].put(keys.actor_live(b, "/camera/color"), b"live-frame")
         s[a].put(keys.weights_announce, b"forged-announcement")
         s[a].put(keys.exploration, b"forged-rate")
         s[a].put(keys.replay_priorities, b"forged-priorities")
