@@ -101,7 +101,7 @@ def run_learner_benchmark(batch_sizes: tuple[int, ...] = (1, 4, 8), repeats: int
         "fast_vs_naive_b1": ratios,
         "target_ratio": TARGET_RATIO,
         "target_met": {k: v >= TARGET_RATIO for k, v in ratios.items()},
-        "fast_settings": {"precision": fast_cfg.precision, "channels_last": fast_cfg.channels_last,
+        "fast_settings": {"precision": fast.precision, "channels_last": fast_cfg.channels_last,
                           "grouped_forward_per_primitive": True, "fp32_heads": True, "torch_compile": False},
         "batch_mix": "even items: successful picks (bootstrap over push+pick), odd: failed pushes",
         "model_channels": model_cfg.channels,

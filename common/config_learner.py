@@ -38,10 +38,16 @@ class LearnerConfig:
     loss_reduction: Literal["sum", "mean"] = "sum"
     target_network: bool = False  # bootstrap V(s_{t+1}) from a lagged copy instead of the online net
     target_sync_every_updates: int = 100  # copy online -> target every this many updates
+    # Clip the gradient's global L2 norm to this before each step; 0 = off (the paper's and VPG's setting). A
+    # summed loss over a Gaussian label's support makes early gradients large: clipping lets a higher lr train
+    # without diverging.
+    max_grad_norm: float = 0.0
     rotation_loss_weight: float = 1.0  # weight of the rotation head's squared error beside the Q loss
     train_rotation_on_success_only: bool = True  # a failed grasp's angle is not a target to imitate
-    # CPU numerics. "bf16": autocast to bfloat16 for the convolutions (fp32 master weights and loss).
-    precision: Literal["fp32", "bf16"] = "bf16"
+    # CPU numerics. "bf16": autocast to bfloat16 for the convolutions (fp32 master weights and loss); it pays
+    # only where the CPU computes bf16 natively (AMX / AVX512-BF16), elsewhere it is emulated and several
+    # times slower than fp32. "auto": bf16 on such CPUs (and on CUDA), fp32 elsewhere.
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
     channels_last: bool = True
     num_threads: int = 0  # 0 = torch's default (one per core)
     device: str = "cpu"  # "cuda" / "cuda:N" trains on a GPU when the machine has one
@@ -68,6 +74,8 @@ class LearnerConfig:
         require(1 <= self.batch_size <= 256, "learner.batch_size", self.batch_size, "must be 1..256")
         require(math.isfinite(self.huber_delta) and self.huber_delta > 0, "learner.huber_delta",
                 self.huber_delta, "must be a positive number (paper: 1)")
+        require(math.isfinite(self.max_grad_norm) and self.max_grad_norm >= 0, "learner.max_grad_norm",
+                self.max_grad_norm, "must be a non-negative number (0 = no clipping)")
         require(self.target_sync_every_updates >= 1, "learner.target_sync_every_updates",
                 self.target_sync_every_updates, "must be >= 1")
         require(0.0 <= self.rotation_loss_weight <= 100.0, "learner.rotation_loss_weight",

@@ -41,7 +41,7 @@ from romannet.common.config_learner import LearnerConfig
 from romannet.common.errors import ConfigError
 from romannet.common.exploration import ExplorationRate
 from romannet.common.model import RoManNet, preprocess_batch, state_dict_to_tensors
-from romannet.common.policy import nets_to_run
+from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 
 from .targets import bootstrap_value, huber, q_label, rotation_target, support_loss, td_target
@@ -111,6 +111,8 @@ class Trainer:
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise ConfigError("learner.device", device, "CUDA is not available on this machine; use 'cpu'")
         self.device = torch.device(device)
+        self.precision = ("bf16" if learner_cfg.precision == "auto" else learner_cfg.precision) \
+            if self.device.type == "cuda" else resolve_precision(learner_cfg.precision)
         if learner_cfg.num_threads > 0:
             torch.set_num_threads(learner_cfg.num_threads)
         self.memory_format = torch.channels_last if learner_cfg.channels_last else torch.contiguous_format
@@ -128,7 +130,7 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------------ helpers
     def _autocast(self):
-        if self.cfg.precision == "bf16":
+        if self.precision == "bf16":
             return torch.autocast(self.device.type, dtype=torch.bfloat16)
         return nullcontext()
 
@@ -210,6 +212,8 @@ class Trainer:
             raise FloatingPointError(f"training loss is {float(loss.detach())} at update {self.updates + 1}; "
                                      "lower learner.lr or check the batch")
         loss.backward()
+        if cfg.max_grad_norm > 0:  # rescales the whole gradient when its L2 norm is larger (not per tensor)
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm)
         self.optimizer.step()
         self.updates += 1
         if self.target is not None and self.updates % cfg.target_sync_every_updates == 0:

@@ -31,7 +31,7 @@ from romannet.replay.store import ReplayStore
 pytestmark = pytest.mark.timeout(240)
 
 SETS = ["model.channels=4", "model.residual_blocks=1", "model.num_threads=1", "learner.num_threads=1",
-        'learner.precision="fp32"', "workspace.resolution_m=0.007", 'sim.robot="gripper"',
+        'learner.precision="fp32"', "learner.max_grad_norm=10", "workspace.resolution_m=0.007", 'sim.robot="gripper"',
         'task.kind="stacking"', "task.goal_stack_height=2", "task.use_push=false", "sim.num_stacking_cubes=3",
         "camera.width_px=160", "camera.height_px=120", "camera.fx_px=154.655", "camera.fy_px=154.655",
         "camera.cx_px=80.0", "camera.cy_px=60.0"]

@@ -53,6 +53,7 @@ snapshot_every_inserts = 0
 [learner]
 batch_size = 2
 precision = "fp32"
+max_grad_norm = 10.0
 num_threads = 1
 min_replay_size = 4
 publish_every_updates = 1

@@ -119,6 +119,33 @@ def test_bf16_step_tracks_fp32():
     assert l16 == pytest.approx(l32, rel=0.05)
 
 
+def test_auto_precision_is_fp32_where_the_cpu_has_no_native_bf16(monkeypatch):
+    """bf16 is emulated (several times slower) on CPUs without AMX/AVX512-BF16: "auto" must not pick it."""
+    from romannet.common import policy
+    monkeypatch.setattr(policy, "cpu_bf16_flags", lambda: ())
+    assert H.trainer(precision="auto").precision == "fp32"
+    assert H.trainer(precision="bf16").precision == "bf16"  # asked for explicitly: kept (with a warning)
+    monkeypatch.setattr(policy, "cpu_bf16_flags", lambda: ("amx_bf16",))
+    expected = "bf16" if torch.backends.mkldnn.is_available() else "fp32"
+    assert H.trainer(precision="auto").precision == expected
+
+
+def test_gradient_clipping_bounds_the_step_gradient():
+    items = H.batch(3)
+    free = H.trainer()
+    free.train_step(items)
+    norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(p.grad) for p in free.model.parameters()
+                                                 if p.grad is not None]))
+    assert norm > 0.5, "the batch must have a gradient larger than the clip for the test to mean anything"
+    clipped = H.trainer(max_grad_norm=0.5)
+    clipped.train_step(items)
+    grads = [p.grad for p in clipped.model.parameters() if p.grad is not None]
+    clipped_norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
+    assert float(clipped_norm) == pytest.approx(0.5, rel=1e-4)
+    with pytest.raises(ValueError, match="max_grad_norm"):
+        H.trainer(max_grad_norm=-1.0)
+
+
 def test_rejects_bad_batches():
     t = H.trainer()
     with pytest.raises(ValueError):
