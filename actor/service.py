@@ -30,15 +30,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from romannet import __version__
-from romannet.common.action import pixel_to_position
+from romannet.common.action import Action, pixel_to_position
 from romannet.common.config import Config
 from romannet.common.config_actor import ActorConfig
 from romannet.common.configbase import dumps_toml
+from romannet.common.exploration import NonFiniteQError
 from romannet.common.interfaces import Env, Observation, ReplayClient, StepResult, WeightsSource
-from romannet.common.model import RoManNet
-from romannet.common.policy import InferenceEngine, decide
+from romannet.common.model import RoManNet, state_dict_to_tensors
+from romannet.common.policy import InferenceEngine, PolicyMaps, decide
 from romannet.common.wire import TransitionMsg, encode_transition
 
 from .recorder import EpisodeRecorder
@@ -117,6 +119,10 @@ class ActorLoop:
                              acfg.resend_backoff_max_s)
         self.engine = engine or InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
         self.stats = ActorStats(acfg.actor_id, cfg.run_id, explore_rate=cfg.exploration.initial_rate)
+        # The last weights that produced finite Q maps (None = the initial ones): what a diverged learner's
+        # weights are replaced by.
+        self.good_weights: tuple[int, dict[str, torch.Tensor]] | None = None
+        self.loaded_weights: tuple[int, dict[str, torch.Tensor]] | None = None
         self.config_toml = dumps_toml(cfg)
 
     # ------------------------------------------------------------------------------------ status
@@ -149,6 +155,7 @@ class ActorLoop:
                 if self.stats.initial_weights:
                     log.info("first weights from the learner: now acting with v%d", version)
                 self.stats.weights_version, self.stats.initial_weights = version, False
+                self.loaded_weights = (version, tensors)
         rate = self.weights.poll_exploration()
         if rate is not None:
             if not self.stats.explore_rate_received:
@@ -257,13 +264,35 @@ class ActorLoop:
                      episode_id, seed, done_reason, ep_actions, self.stats.weights_version,
                      self.stats.explore_rate, self.spool.items)
 
+    def decide(self, obs: Observation, rng: np.random.Generator) -> tuple[Action, PolicyMaps]:
+        """RoManNet's decision; weights whose Q maps are not finite are dropped for the last good ones."""
+        args = (obs.color_hm, obs.depth_hm, obs.holding, self.stats.explore_rate, rng, self.env.primitives,
+                self.cfg.exploration)
+        try:
+            result = decide(self.engine, *args, return_maps=True)
+        except NonFiniteQError as err:
+            if self.loaded_weights is None:  # the initial weights themselves: nothing to fall back to
+                raise
+            bad = self.loaded_weights[0]
+            if self.good_weights is None:
+                good, tensors = 0, state_dict_to_tensors(RoManNet(self.cfg.model, seed=self.cfg.learner.seed))
+            else:
+                good, tensors = self.good_weights
+            log.error("weights v%d give non-finite Q maps (%s: has the learner diverged?); back to v%d until "
+                      "newer weights arrive", bad, err, good)
+            self.engine.load_state(tensors)
+            self.loaded_weights, self.stats.weights_version = self.good_weights, good
+            self.stats.initial_weights = self.good_weights is None
+            result = decide(self.engine, *args, return_maps=True)
+        self.good_weights = self.loaded_weights
+        return result
+
     def act(self, obs: Observation, episode_id: str, step: int, rng: np.random.Generator,
             recorder: EpisodeRecorder | None) -> tuple[str, StepResult]:
         """Decide, execute, then spool, record and count one action; returns (primitive, result)."""
-        version, rate = self.stats.weights_version, self.stats.explore_rate
         start_ns = time.time_ns()
-        action, maps = decide(self.engine, obs.color_hm, obs.depth_hm, obs.holding, rate, rng,
-                              self.env.primitives, self.cfg.exploration, return_maps=True)
+        action, maps = self.decide(obs, rng)
+        version, rate = self.stats.weights_version, self.stats.explore_rate
         q_ranges = recorder.write_q_maps(maps.q, start_ns) if recorder is not None else {}
         result = self.env.step(action)
         end_ns = max(time.time_ns(), start_ns)

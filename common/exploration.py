@@ -33,6 +33,10 @@ ANGLE_RANGE_RAD: dict[str, tuple[float, float]] = {
 Candidate = tuple[str, int, int, float]  # (primitive, row, col, q)
 
 
+class NonFiniteQError(ValueError):
+    """A Q map holds NaN or infinity: the weights that produced it are unusable (a diverged learner)."""
+
+
 # ------------------------------------------------------------------------------------------ rates
 def lae_f(loss: float, alpha: float = 0.5, sigma: float = 0.33) -> float:
     """The paper's Boltzmann-shaped map of a loss to [0, 1): tanh(|alpha loss| / (2 sigma)).
@@ -176,7 +180,7 @@ def _top_k_maxima(q_maps: dict[str, np.ndarray], k: int, min_distance_px: int) -
     for i, prim in enumerate(prims):
         q = np.ascontiguousarray(_as_map(q_maps[prim], prim, shape), dtype=np.float32)
         if not np.isfinite(q).all():
-            raise ValueError(f"{prim} Q map holds non-finite values")
+            raise NonFiniteQError(f"{prim} Q map holds non-finite values")
         flat = np.flatnonzero(q >= cv2.dilate(q, kernel))  # border is padded with -inf by OpenCV's default
         values.append(q.ravel()[flat])
         keys.append(flat + i * q.size)  # key order = (primitive, row, col)
@@ -251,7 +255,7 @@ def select_action(q_maps: dict[str, np.ndarray], angle_maps: dict[str, np.ndarra
         flat_idx = int(np.argmax(q))  # NaN counts as the maximum in np.argmax, so one check covers the map
         value = float(q.flat[flat_idx])
         if not math.isfinite(value):
-            raise ValueError(f"{prim} Q map holds non-finite values")
+            raise NonFiniteQError(f"{prim} Q map holds non-finite values")
         if best is None or value > best[0]:
             best = (value, prim, flat_idx)
     assert best is not None  # prims is non-empty

@@ -231,3 +231,38 @@ def test_cli_actor_against_replay_process(tmp_path: Path) -> None:
                     p.kill()
                     p.communicate()
     assert replay.returncode == 0
+
+
+class DivergingWeights:
+    """Good weights v3 on the 2nd poll, then v5 (finite numbers whose Q maps overflow: a diverged learner's)
+    on the 4th, then good v6 on the 7th."""
+
+    def __init__(self, cfg: Config):
+        good = state_dict_to_tensors(RoManNet(cfg.model, seed=123))
+        blown = {k: (v * 1e30 if k.endswith(("conv6.weight", "q_head.weight")) else v) for k, v in good.items()}
+        assert all(bool(v.isfinite().all()) for v in blown.values() if v.is_floating_point())
+        self.deliveries = {2: (3, good), 4: (5, blown), 7: (6, good)}
+        self.polls = 0
+
+    def poll_weights(self):
+        self.polls += 1
+        return self.deliveries.get(self.polls)
+
+    def poll_exploration(self):
+        return None
+
+
+def test_weights_with_non_finite_q_maps_are_dropped_for_the_last_good_ones(
+        tmp_path: Path, cfg: Config, store: ReplayStore, caplog: pytest.LogCaptureFixture) -> None:
+    env = SimEnv.from_config(cfg)
+    client = RecordingClient(store)
+    try:
+        stats = run_actor(cfg, tmp_path, env, client, DivergingWeights(cfg), threading.Event(),
+                          actor_cfg=_acfg(max_actions=8))
+    finally:
+        env.close()
+    assert stats.actions == 8  # the actor kept acting
+    # v0 for the first action, v3 from the 2nd; v5 is loaded before the 4th decision, gives NaN/inf Q maps
+    # and is replaced by v3 for that very decision; v6 from the 7th.
+    assert [t.policy_version for t in client.accepted] == [0, 3, 3, 3, 3, 3, 6, 6]
+    assert "weights v5 give non-finite Q maps" in caplog.text and "back to v3" in caplog.text
