@@ -173,6 +173,10 @@ class ExplorationConfig:
     sigma: float = 0.33  # inverse sensitivity (the authors' code)
     beta: float = 0.25
     initial_rate: float = 0.5
+    # A floor under the LAE rate the actors use (the recursion itself runs unfloored); 0 = the paper's LAE.
+    # LAE follows the loss down: once the nets predict ~0 everywhere and the greedy pick keeps failing on an
+    # empty pixel, the loss and with it the rate go to ~0.01 and nothing new is tried (docs/results.md).
+    lae_min_rate: float = 0.0
     top_k: int = 10  # action candidates: the top-k local maxima of each allowed net's Q map
     candidate_min_distance_px: int = 5  # local maxima closer than this are one candidate
     random_angle_prob: float = 0.5  # when exploring, draw the angle uniformly with this probability
@@ -185,6 +189,8 @@ class ExplorationConfig:
         require(self.sigma > 0, "exploration.sigma", self.sigma, "must be > 0 (inverse sensitivity)")
         require(0.0 <= self.beta < 1.0, "exploration.beta", self.beta, "must be in [0, 1)")
         require(0.0 <= self.initial_rate <= 1.0, "exploration.initial_rate", self.initial_rate, "must be in [0, 1]")
+        require(0.0 <= self.lae_min_rate <= 1.0, "exploration.lae_min_rate", self.lae_min_rate,
+                "must be in [0, 1] (0 = the paper's LAE, no floor)")
         require(1 <= self.top_k <= 1000, "exploration.top_k", self.top_k, "must be 1..1000")
         require(1 <= self.candidate_min_distance_px <= 100, "exploration.candidate_min_distance_px",
                 self.candidate_min_distance_px, "must be 1..100")

@@ -81,7 +81,9 @@ class ExplorationRate:
 
     @property
     def value(self) -> float:
-        """Current probability of exploring, in [0, 1]."""
+        """Current probability of exploring, in [0, 1] (LAE: never below exploration.lae_min_rate)."""
+        if self._cfg.policy == "lae":
+            return max(self._value, self._cfg.lae_min_rate)
         return self._value
 
     @property
@@ -99,7 +101,7 @@ class ExplorationRate:
             raise ValueError(f"exploration.policy = {self._cfg.policy!r} must be 'lae' or 'epsilon_greedy'")
         self._steps += 1
         self._value = new_value
-        return new_value
+        return self.value
 
     def state_dict(self) -> dict[str, float | int]:
         return {"value": float(self._value), "steps": int(self._steps)}

@@ -99,6 +99,18 @@ def test_exploration_rate_lae_follows_lae_update():
     assert rate.steps == 3 and rate.value == pytest.approx(expected)
 
 
+def test_lae_floor_bounds_the_used_rate_but_not_the_recursion():
+    floored, paper = ExplorationRate(replace(CFG, lae_min_rate=0.1)), ExplorationRate(CFG)
+    for _ in range(20):  # tiny losses: the paper's LAE decays toward 0
+        assert floored.update(1e-4) == pytest.approx(max(paper.update(1e-4), 0.1))
+    assert paper.value < 0.01 and floored.value == 0.1
+    # The recursion underneath is the paper's: one large loss lifts both to the same unfloored value.
+    assert floored.update(5.0) == pytest.approx(paper.update(5.0)) and paper.value > 0.1
+    assert floored.state_dict() == paper.state_dict()
+    with pytest.raises(ValueError, match="lae_min_rate"):
+        replace(CFG, lae_min_rate=1.5)
+
+
 def test_exploration_rate_epsilon_greedy_follows_the_update_count():
     rate = ExplorationRate(replace(CFG, policy="epsilon_greedy"))
     assert rate.value == 0.5
