@@ -101,7 +101,7 @@ def _summary(samples: list[float]) -> tuple[float, float]:
     return round(statistics.median(samples), 2), round(min(samples), 2)
 
 
-def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[str, dict[str, float]]:
+def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[str, dict]:
     """PushNet + PickNet forward only (no selection), one optimisation added at a time: median and min ms.
 
     The minimum is the better guide to what each step buys on an idle machine; the median shows how it
@@ -125,21 +125,33 @@ def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[st
         "eager_fp32_channels_last": lambda: [n(x_cl) for n in nets_cl],
         "autocast_bf16_channels_last": autocast_cl,
     }
+    unsupported: dict[str, str] = {}  # variants this CPU cannot run (oneDNN's bf16 kernels need AVX-512 or AVX-NE)
     for precision in ("fp32", "bf16"):
         for fused in ((False, True) if fused_ops_available() else (False,)):
-            fast = [FastNet(n, precision, fused) for n in nets]
-            variants[f"folded_{precision}{'_fused_prepacked' if fused else ''}"] = (
-                lambda fast=fast: [f(x) for f in fast])
+            name = f"folded_{precision}{'_fused_prepacked' if fused else ''}"
+            try:
+                fast = [FastNet(n, precision, fused) for n in nets]
+            except RuntimeError as err:
+                unsupported[name] = str(err).splitlines()[0][:200]
+                continue
+            variants[name] = lambda fast=fast: [f(x) for f in fast]
     if engine.parallel_nets:
         variants[f"engine_{engine.precision}_parallel_nets"] = lambda: engine.forward(x, ("push", "pick"))
-    samples: dict[str, list[float]] = {k: [] for k in variants}
     with torch.inference_mode():
-        for fn in variants.values():
-            fn()  # warm-up: oneDNN primitive creation
+        for name, fn in list(variants.items()):
+            try:
+                fn()  # warm-up: oneDNN primitive creation
+            except RuntimeError as err:
+                unsupported[name] = str(err).splitlines()[0][:200]
+                del variants[name]
+        samples: dict[str, list[float]] = {k: [] for k in variants}
         for _ in range(repeats):
             for name, fn in variants.items():
                 samples[name].append(_time_ms(fn))
-    return {name: dict(zip(("median_ms", "min_ms"), _summary(s), strict=True)) for name, s in samples.items()}
+    result: dict[str, dict] = {name: dict(zip(("median_ms", "min_ms"), _summary(s), strict=True))
+                               for name, s in samples.items()}
+    result.update({name: {"unsupported": why} for name, why in unsupported.items()})
+    return result
 
 
 def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: int = 100,

@@ -84,3 +84,15 @@ def test_missing_and_malformed_files(tmp_path):
         load_config(bad)
     with pytest.raises(ConfigError, match="section.field=value"):
         load_config(overrides=["reward.push_weight"])
+
+
+def test_every_experiment_recipe_loads():
+    """The recipes in configs/experiments/ (the commands in README and docs/results.md name them)."""
+    from pathlib import Path
+    recipes = sorted((Path(__file__).resolve().parents[1] / "configs" / "experiments").glob("*.toml"))
+    assert len(recipes) >= 7
+    for path in recipes:
+        cfg = load_config(path)
+        assert cfg.replay.samples_per_insert == 2.0 and cfg.actor.spool_max_items == 2, path  # paced
+        if cfg.exploration.policy == "lae":
+            assert cfg.exploration.lae_min_rate == 0.1, path
