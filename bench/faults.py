@@ -51,7 +51,8 @@ ROUTER_PORT = 7447
 # A light run: the tiny RoManNet of the integration tests, 64x64 heightmaps, the floating gripper.
 RUN_SETTINGS = [
     f'run_id="{RUN_ID}"', "model.channels=4", "model.residual_blocks=1", "model.num_threads=1",
-    "learner.num_threads=1", 'learner.precision="fp32"', "learner.max_grad_norm=10", "learner.batch_size=2", "learner.min_replay_size=4",
+    "learner.num_threads=1", 'learner.precision="fp32"', "learner.max_grad_norm=10", "learner.batch_size=2",
+    "learner.min_replay_size=4",
     "learner.publish_every_updates=2", "learner.checkpoint_every_updates=4", "replay.min_size_to_sample=1",
     "sim.num_objects=3", 'sim.robot="gripper"', "workspace.resolution_m=0.007", "actor.record_camera=false",
     "actor.insert_timeout_s=3.0", "actor.resend_backoff_max_s=1.0", "actor.weights_fetch_timeout_s=5.0",

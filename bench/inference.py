@@ -101,6 +101,10 @@ def _summary(samples: list[float]) -> tuple[float, float]:
     return round(statistics.median(samples), 2), round(min(samples), 2)
 
 
+def _first_line(err: Exception) -> str:
+    return str(err).splitlines()[0][:200] if str(err) else type(err).__name__
+
+
 def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[str, dict]:
     """PushNet + PickNet forward only (no selection), one optimisation added at a time: median and min ms.
 
@@ -132,7 +136,7 @@ def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[st
             try:
                 fast = [FastNet(n, precision, fused) for n in nets]
             except RuntimeError as err:
-                unsupported[name] = str(err).splitlines()[0][:200]
+                unsupported[name] = _first_line(err)
                 continue
             variants[name] = lambda fast=fast: [f(x) for f in fast]
     if engine.parallel_nets:
@@ -142,7 +146,7 @@ def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[st
             try:
                 fn()  # warm-up: oneDNN primitive creation
             except RuntimeError as err:
-                unsupported[name] = str(err).splitlines()[0][:200]
+                unsupported[name] = _first_line(err)
                 del variants[name]
         samples: dict[str, list[float]] = {k: [] for k in variants}
         for _ in range(repeats):

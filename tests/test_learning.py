@@ -44,9 +44,10 @@ class Budget:
 
     150 episodes, 2 updates each. lr is 10x the paper's 1e-4 so that the budget fits a CI minute; without
     gradient clipping that lr sits on the edge of divergence with the summed loss, and whether a seed
-    diverges depends on the CPU's float kernels (on an AMD EPYC seeds 0-4 ended at 0-100 %; on an Intel Xeon
-    seed 0 reached 100 %). Clipping the gradient norm at 10 trains every seed measured: greedy success
-    98-100 % for seeds 0-4 on the AMD box (from 0-10 %), ~15 s each. fp32 here: at 8 channels bf16 is slower.
+    diverges depends on the CPU's float kernels (on an Intel Xeon seed 0 reached 100 %; on an AMD EPYC seeds
+    0 and 1 ended at 0 %, one with non-finite Q maps, and at lr 5e-4 two of seeds 0-4 still diverged).
+    Clipping the gradient norm at 10 trains every seed measured: greedy success 98-100 % for seeds 0-4 on the
+    AMD box (from 0-10 %), ~15 s each. fp32 here: at 8 channels bf16 is slower.
     """
 
     episodes: int = 150

@@ -219,3 +219,18 @@ def test_precision_resolution(monkeypatch):
     assert resolve_precision("auto") == ("bf16" if torch.backends.mkldnn.is_available() else "fp32")
     with pytest.raises(ValueError):
         resolve_precision("int8")
+
+
+def test_inference_ablation_runs_on_any_cpu():
+    """`romannet bench inference` times every variant this CPU can run and names the others (on CPUs without
+    AVX-512, oneDNN's prepacked bf16 kernels raise): it never ends the benchmark with a traceback."""
+    from romannet.bench.inference import _ablation
+    cfg = ModelConfig(channels=8, residual_blocks=1, precision="fp32")
+    engine = policy.InferenceEngine(RoManNet(cfg, seed=0).eval(), cfg)
+    result = _ablation(engine, torch.rand(1, 4, 32, 32), repeats=1)
+    for name in ("eager_fp32", "eager_fp32_channels_last", "folded_fp32"):
+        assert result[name]["min_ms"] > 0, name
+    for name, entry in result.items():
+        assert set(entry) in ({"median_ms", "min_ms"}, {"unsupported"}), (name, entry)
+        if "unsupported" in entry:
+            assert "bf16" in name and entry["unsupported"], (name, entry)
