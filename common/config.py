@@ -15,8 +15,10 @@ from typing import Any, Literal
 import tomllib
 
 from .config_actor import ActorConfig
+from .config_calibration import CalibrationConfig
 from .config_learner import LearnerConfig
 from .config_replay import ReplayConfig
+from .config_robot import RealSenseConfig, RobotConfig
 from .config_sim import SimConfig
 from .configbase import apply_overrides, from_dict, read_toml, require
 from .errors import ConfigError
@@ -218,6 +220,9 @@ class Config:
     sim: SimConfig = field(default_factory=SimConfig)
     learner: LearnerConfig = field(default_factory=LearnerConfig)
     actor: ActorConfig = field(default_factory=ActorConfig)
+    robot: RobotConfig = field(default_factory=RobotConfig)  # real robot actors only
+    realsense: RealSenseConfig = field(default_factory=RealSenseConfig)  # real robot actors only
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     def __post_init__(self) -> None:
         require(bool(self.run_id) and all(c.isalnum() or c in "-_" for c in self.run_id), "run_id",

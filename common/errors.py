@@ -17,3 +17,7 @@ class ConfigError(RomannetError, ValueError):
 
 class DecodeError(RomannetError, ValueError):
     """Bytes from the network or from a file are not a valid message (malformed, out of range, non-finite)."""
+
+
+class RobotError(RomannetError, RuntimeError):
+    """A real robot or camera cannot be used: unreachable, not ready, a driver missing, no frame in time."""

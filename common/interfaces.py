@@ -111,3 +111,103 @@ class WeightsSource(Protocol):
     def poll_exploration(self) -> ExplorationRateMsg | None:
         """The newest exploration rate not yet returned, or None."""
         ...
+
+
+# ------------------------------------------------------------------------------------------ real robots
+@dataclass(frozen=True, eq=False)
+class CameraFrame:
+    """One aligned RGB-D frame: color uint8 (H, W, 3) RGB; depth_m float32 (H, W), metres along the camera
+    z axis as the device reports them (0 = no reading); intrinsics 3x3 of the color stream (depth is aligned
+    to it); timestamp_s from the device clock."""
+
+    color: np.ndarray
+    depth_m: np.ndarray
+    intrinsics: np.ndarray
+    timestamp_s: float = 0.0
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """An RGB-D camera with an explicit lifecycle (connect / disconnect, or `with camera:`)."""
+
+    def connect(self) -> None:
+        """Open the device and start streaming; raises RobotError with the reason (no device, busy, ...)."""
+        ...
+
+    def disconnect(self) -> None:
+        """Stop streaming and release the device. Idempotent."""
+        ...
+
+    def capture(self) -> CameraFrame:
+        """The newest aligned color + depth frame; raises RobotError if none arrives in time."""
+        ...
+
+
+@dataclass(frozen=True)
+class MotionResult:
+    """What a robot primitive or move did.
+
+    success: the motion completed and (pick) the hardware reports a grasp / (place, push) nothing failed;
+    reason: "" on success, else a short code ("nothing_grasped", "protective_stop", ...); clamped: a commanded
+    pose was moved into the safety box; stopped: "" or why the robot stopped (protective / emergency stop):
+    the robot then refuses every motion until `resume()`.
+    """
+
+    success: bool
+    reason: str = ""
+    clamped: bool = False
+    stopped: str = ""
+
+
+@runtime_checkable
+class Robot(Protocol):
+    """A real arm: explicit lifecycle, pose queries, the paper's three primitives as Cartesian motions,
+    grasp feedback. Implementations clamp every commanded pose to their safety box and cap speeds; a
+    protective or emergency stop ends the motion as failed and the robot stays stopped (no motion is
+    retried) until `resume()` is called after an operator has cleared it."""
+
+    stopped: str  # "" while the robot may move, else why it stopped
+
+    def connect(self) -> None:
+        """Connect and check the controller is ready (running, normal safety mode); raises RobotError."""
+        ...
+
+    def disconnect(self) -> None:
+        """Stop any motion and close the connections. Idempotent."""
+        ...
+
+    def tool_pose(self) -> np.ndarray:
+        """The TCP pose (6,): x y z in metres and a rotation vector, robot base frame."""
+        ...
+
+    def move_to(self, pose: np.ndarray) -> MotionResult:
+        """A linear move of the TCP to `pose` (clamped), at the free-space speed."""
+        ...
+
+    def go_home(self) -> MotionResult:
+        """Move to the home pose (out of the camera's view)."""
+        ...
+
+    def push(self, x_m: float, y_m: float, z_m: float, angle_rad: float) -> MotionResult:
+        """Closed tool down to (x, y, z), then push_distance_m along angle_rad, up, and home."""
+        ...
+
+    def pick(self, x_m: float, y_m: float, z_m: float, angle_rad: float) -> MotionResult:
+        """Top-down grasp at the surface point (x, y, z), lift, home; success from the grasp sensor."""
+        ...
+
+    def place(self, x_m: float, y_m: float, z_m: float, angle_rad: float) -> MotionResult:
+        """Lower the held object onto the surface point (x, y, z), release, home."""
+        ...
+
+    def drop(self, x_m: float, y_m: float, z_m: float) -> MotionResult:
+        """Release the held object from above (x, y, z) (bin picking: into the destination bin), home."""
+        ...
+
+    def holding(self) -> bool:
+        """Grasp feedback now: vacuum sensor on / fingers stopped wider than empty."""
+        ...
+
+    def resume(self) -> bool:
+        """After an operator cleared a stop: True (and motion allowed again) if the controller is ready."""
+        ...

@@ -1,0 +1,1 @@
+"""Real robot actors: UR arms through ur_rtde, RealSense cameras through pyrealsense2 (optional extras)."""
