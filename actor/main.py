@@ -6,7 +6,10 @@ The TOML file is the fleet config (configs/default.toml): run_id picks the keys,
 the simulated scene, [model] [exploration] the policy, [actor] this process (common/config_actor.py).
 --actor-id / --max-actions / --episodes override the [actor] values, so one file serves a whole fleet.
 
-The environment sits behind common.interfaces.Env (SimEnv now; a real robot later plugs in here). A signal
+The environment sits behind common.interfaces.Env: the simulator (`--robot sim`, the default) or a UR arm
+with a RealSense camera (`--robot ur --camera realsense`, actor/real/; the [robot] and [realsense] sections
+and a calibration file from `romannet calibrate`). A robot stop pauses the actor until an operator resumes
+it (actor/service.py). A signal
 sets the stop event; the actor finishes the primitive under way, spools and records it, finishes the MCAP
 file, gives the sender actor.shutdown_flush_s to empty the spool, drops its liveliness token and closes the
 session.
@@ -23,6 +26,8 @@ from pathlib import Path
 from romannet.common.config import Config, load_config
 from romannet.common.config_actor import ActorConfig
 from romannet.common.configbase import write_toml
+from romannet.common.errors import ConfigError
+from romannet.common.interfaces import Env
 from romannet.common.keys import RunKeys
 from romannet.common.model import RoManNet, validate_tensors
 from romannet.common.policy import InferenceEngine
@@ -43,6 +48,33 @@ def resolve_actor_config(cfg: Config, args: argparse.Namespace) -> ActorConfig:
     return dataclasses.replace(actor_section(cfg), **changes)  # validated again by __post_init__
 
 
+def build_env(cfg: Config, robot: str = "sim", camera: str | None = None) -> Env:
+    """The environment behind the actor: the simulator, or a real robot + camera (connected and checked)."""
+    if robot == "sim":
+        if camera not in (None, "sim"):
+            raise ConfigError("--camera", camera, "a simulated robot sees through the simulator's camera: "
+                              "leave --camera out (or use --robot ur)")
+        from .sim.env import SimEnv  # imported here: pybullet is heavy
+
+        return SimEnv.from_config(cfg)
+    if camera not in (None, "realsense"):
+        raise ConfigError("--camera", camera, "a real robot needs a real camera: --camera realsense")
+    if not cfg.robot.calibration_file:
+        raise ConfigError("robot.calibration_file", "", "a real robot needs the camera-to-robot calibration: "
+                          "run `romannet calibrate --config robot.toml --out calibration.json` and set "
+                          "[robot] calibration_file")
+    from .real.calibration import load_calibration
+    from .real.env import RealEnv
+    from .real.realsense import RealSenseCamera
+    from .real.ur import URRobot
+
+    calibration = load_calibration(cfg.robot.calibration_file)
+    env = RealEnv(cfg, URRobot(cfg.robot), RealSenseCamera(cfg.realsense), calibration.T_base_cam,
+                  calibration.depth_scale)
+    env.connect()
+    return env
+
+
 def run(args: argparse.Namespace) -> int:
     """Run one actor for parsed CLI arguments (see romannet/cli.py); returns the exit code."""
     cfg = load_config(args.config, args.overrides)
@@ -55,11 +87,8 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
 
     with stop_on_signals(stop, "finishing the current action, then flush and exit"):
-        # Imported here: pybullet is heavy and only this verb needs it.
-        from .sim.env import SimEnv
-
         engine = InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
-        env = SimEnv.from_config(cfg)
+        env = build_env(cfg, getattr(args, "robot", "sim"), getattr(args, "camera", None))
         try:
             with open_session(zenoh_config) as session:
                 token = session.liveliness().declare_token(RunKeys(cfg.run_id).actor_alive(acfg.actor_id))

@@ -67,6 +67,11 @@ class ActorPaths:
         return self.root / "status.json"
 
     @property
+    def resume(self) -> Path:
+        """An operator creates this file to resume an actor paused by a robot stop (`touch` it)."""
+        return self.root / "resume"
+
+    @property
     def state(self) -> Path:
         return self.root / "state.json"
 
@@ -187,6 +192,32 @@ class ActorLoop:
         self.write_status()
         return True
 
+    def wait_for_operator(self) -> bool:
+        """While the environment is paused (a real robot stopped), wait for an operator; False if stopped.
+
+        The robot never moves by itself after a stop: an operator clears it on the teach pendant, makes the
+        cell safe, then creates the resume file; the environment then checks the controller is ready.
+        """
+        reason = getattr(self.env, "paused", "")
+        if not reason:
+            return True
+        self.paths.resume.unlink(missing_ok=True)  # a request from before this stop does not count
+        message = f"{reason}. To resume: touch {self.paths.resume}"
+        log.error("actor paused: %s", message)
+        self.stats.paused, self.stats.pause_reason, self.stats.state = True, message, "paused"
+        self.write_status()
+        while not self.stop.is_set():
+            if self.paths.resume.exists():
+                self.paths.resume.unlink(missing_ok=True)
+                if self.env.try_resume():  # type: ignore[attr-defined]
+                    log.info("actor resumed by the operator")
+                    self.stats.paused, self.stats.pause_reason, self.stats.state = False, "", "running"
+                    self.write_status()
+                    return True
+                log.error("resume refused: the robot is not ready yet (see above); still paused. %s", message)
+            self.stop.wait(_PAUSE_POLL_S)
+        return False
+
     # ----------------------------------------------------------------------------------- episodes
     def run(self) -> ActorStats:
         self.sender.start()
@@ -197,6 +228,8 @@ class ActorLoop:
         self.write_status()
         try:
             while not self.stop.is_set() and not self.limits_reached():
+                if not self.wait_for_operator():
+                    break
                 self.run_episode()
         finally:
             self.stats.state = "stopping"

@@ -43,7 +43,12 @@ EXAMPLES = {
     "deploy": DEPLOY_EXAMPLE,
     "actor": ("romannet actor --config configs/default.toml --run-dir runs/default --actor-id actor-0 "
               "--connect tcp/127.0.0.1:7447\n  romannet actor --run-dir runs/default --actor-id actor-1 "
-              "--max-actions 50 --set workspace.resolution_m=0.007 --connect tcp/127.0.0.1:7447"),
+              "--max-actions 50 --set workspace.resolution_m=0.007 --connect tcp/127.0.0.1:7447\n"
+              "  romannet actor --robot ur --camera realsense --config robot.toml --run-dir runs/real "
+              "--actor-id ur10-0 --connect tcp/10.0.0.5:7447"),
+    "calibrate": ("romannet calibrate --config robot.toml --out calibration.json\n"
+                  "  romannet calibrate --config robot.toml --set 'calibration.board_offset_m=[0,-0.13,0.02]' "
+                  "--out runs/real/calibration.json --report runs/real/calibration.md"),
     "eval": ("romannet eval runs/stack-h4 --task stacking --goal-height 2 3 4 5 --runs 30\n"
              "  romannet eval runs/clutter --task clutter --objects 30 --object-set novel --protocol frozen\n"
              "  romannet eval runs/clutter --task arrangement"),
@@ -154,6 +159,12 @@ def cmd_learner(args: argparse.Namespace) -> int:
 
 def cmd_actor(args: argparse.Namespace) -> int:
     from romannet.actor.main import run
+
+    return run(args)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from romannet.actor.real.calibrate import run
 
     return run(args)
 
@@ -282,7 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-updates", type=int, default=0, metavar="N",
                    help="stop (checkpoint, exit 0) once the learner reaches update N (default: 0 = until a signal)")
 
-    p = verb("actor", "act in the simulator with the newest weights, send every transition to the replay "
+    p = verb("actor", "act in the simulator or on a real robot (UR + RealSense) with the newest weights, send every transition to the replay "
              "server (spooled on disk until acknowledged) and record each episode to MCAP, until "
              "SIGTERM/SIGINT or a limit", cmd_actor)
     _add_config_args(p)
@@ -294,11 +305,27 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop after N actions (default: the config's actor.max_actions; 0 = no limit)")
     p.add_argument("--episodes", type=int, default=None, metavar="N",
                    help="stop after N finished episodes (default: the config's actor.episodes; 0 = no limit)")
+    p.add_argument("--robot", choices=("sim", "ur"), default="sim",
+                   help="sim: the PyBullet simulator (default); ur: a Universal Robots arm through ur_rtde "
+                        "(the [robot] config section; pip install 'romannet[robot]')")
+    p.add_argument("--camera", choices=("sim", "realsense"), default=None,
+                   help="the camera of a real robot: realsense (default with --robot ur; the [realsense] "
+                        "section); sim: the simulator's own")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7449 (repeatable)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to: the replay server or a router, e.g. tcp/127.0.0.1:7447")
     add_zenoh_config_arg(p)
+
+    p = verb("calibrate", "camera-to-robot calibration of a real robot actor: the UR arm moves a checkerboard "
+             "on its tool over the [calibration] grid; writes the camera pose and depth scale (the file "
+             "robot.calibration_file names) and a Markdown report of the residual per pose; exit 2 if the RMS "
+             "residual exceeds calibration.max_rms_error_m", cmd_calibrate)
+    _add_config_args(p)
+    p.add_argument("--out", default="calibration.json", metavar="FILE.json",
+                   help="the calibration file to write (default: calibration.json)")
+    p.add_argument("--report", default=None, metavar="FILE.md",
+                   help="the Markdown report (default: --out with suffix .md)")
 
     p = verb("eval", "evaluate a checkpoint with the paper's protocol (30 greedy runs per test case, new seeds; "
              "completion, pick success, action efficiency); writes report.md/.json/.png", cmd_eval)

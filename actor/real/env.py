@@ -1,0 +1,261 @@
+"""RealEnv: a real robot and camera behind common.interfaces.Env, for the paper's real-world tasks.
+
+Tasks (cfg.task.kind):
+- "clutter" / "arrangement": bin picking with bin swapping. A successful pick is dropped into the other bin
+  (robot.bins_xy_m lists two bins) or at robot.drop_xy_m (one workspace). The episode is done when the source
+  bin is empty on the depth heightmap; the next reset swaps source and destination (the paper's real setup).
+- "stacking": picked cubes stay in the tool until placed; the stack height is measured on the depth
+  heightmap (common.stack), done at task.goal_stack_height. Reset waits for the operator to un-stack.
+
+Success X comes from the hardware (vacuum sensor or finger width) for picks, from the depth heightmap for
+places (the stack grew), and from the motion for pushes; progress P from the depth heightmap, as in the
+simulator (common.reward). Episode rules (sim.max_steps, sim.max_consecutive_failures) are the simulator's.
+
+A protective or emergency stop ends the episode as "robot_stopped" (the failed action is recorded with
+reward 0 and no new camera frame: the arm may be in view) and sets `paused`; the actor then waits for an
+operator, and `try_resume()` lets the robot move again only once the controller is ready.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+
+from romannet.common.action import Action, pixel_to_position
+from romannet.common.config import Config, WorkspaceConfig
+from romannet.common.errors import RobotError
+from romannet.common.heightmap import get_heightmaps
+from romannet.common.interfaces import Camera, MotionResult, Observation, Robot, StepResult
+from romannet.common.reward import (
+    clutter_progress,
+    progress_reversed,
+    stacking_progress,
+    task_progress_reward,
+)
+from romannet.common.stack import stack_height
+
+log = logging.getLogger(__name__)
+
+PUSH_PATCH_RADIUS_M = 0.012  # as the simulator: the push starts above the highest point around the pixel
+PLACE_PATCH_RADIUS_M = 0.015  # the held object is lowered onto the highest point around the pixel
+RESET_POLL_S = 2.0
+
+
+def bin_workspaces(cfg: Config) -> list[WorkspaceConfig]:
+    """The heightmap workspace of each bin ([workspace]'s size at each robot.bins_xy_m corner), or [workspace]."""
+    ws = cfg.workspace
+    if not cfg.robot.bins_xy_m:
+        return [ws]
+    dx, dy = ws.x_max_m - ws.x_min_m, ws.y_max_m - ws.y_min_m
+    return [dataclasses.replace(ws, x_min_m=x, x_max_m=x + dx, y_min_m=y, y_max_m=y + dy)
+            for x, y in cfg.robot.bins_xy_m]
+
+
+def occupied_fraction(depth_hm: np.ndarray, occupied_height_m: float) -> float:
+    """Share of the heightmap above occupied_height_m (what "empty bin" is judged on)."""
+    return float(np.mean(depth_hm > occupied_height_m))
+
+
+def patch_max(depth_hm: np.ndarray, row: int, col: int, radius_m: float, resolution_m: float) -> float:
+    """Highest depth_hm value (m above the floor) within radius_m of pixel (row, col)."""
+    r = max(1, round(radius_m / resolution_m))
+    return float(depth_hm[max(0, row - r):row + r + 1, max(0, col - r):col + r + 1].max())
+
+
+class RealEnv:
+    """See the module docstring. Owns the robot and the camera: connect() both, close() releases both."""
+
+    def __init__(self, cfg: Config, robot: Robot, camera: Camera, T_base_cam: np.ndarray, depth_scale: float = 1.0):
+        self.cfg, self.robot, self.camera = cfg, robot, camera
+        self.T_base_cam = np.asarray(T_base_cam, dtype=np.float64)
+        self.depth_scale = float(depth_scale)
+        self.primitives: tuple[str, ...] = cfg.task.primitives
+        self.workspaces = bin_workspaces(cfg)
+        self.source = 0  # index of the bin picked from
+        self.paused = ""
+        self.stacking = cfg.task.kind == "stacking"
+        self._episode_over = True
+        self.seed = -1
+
+    @property
+    def ws(self) -> WorkspaceConfig:
+        return self.workspaces[self.source]
+
+    def connect(self) -> None:
+        self.robot.connect()
+        try:
+            self.camera.connect()
+        except BaseException:
+            self.robot.disconnect()
+            raise
+
+    def close(self) -> None:
+        """Disconnect the robot and the camera. Idempotent."""
+        try:
+            self.robot.disconnect()
+        finally:
+            self.camera.disconnect()
+
+    # ----------------------------------------------------------------------------------- observing
+    def observe(self, ws: WorkspaceConfig | None = None, holding: bool = False) -> Observation:
+        frame = self.camera.capture()
+        depth_m = frame.depth_m * np.float32(self.depth_scale)
+        color_hm, depth_hm = get_heightmaps(frame.color, depth_m, frame.intrinsics, self.T_base_cam, ws or self.ws)
+        return Observation(color_hm, depth_hm, holding, frame.color, depth_m)
+
+    def _empty(self, obs: Observation) -> bool:
+        return occupied_fraction(obs.depth_hm, self.cfg.reward.occupied_height_m) < self.cfg.robot.empty_occupied_fraction
+
+    def _progress(self, depth_hm: np.ndarray) -> float:
+        if self.stacking:
+            return stacking_progress(stack_height(depth_hm, self.cfg.task.cube_size_m), self.cfg.task.goal_stack_height)
+        return clutter_progress(depth_hm, self.depth_start, self.cfg.reward.occupied_height_m)
+
+    # ------------------------------------------------------------------------------------- episodes
+    def reset(self, seed: int | None = None) -> Observation:
+        """Home, then a first observation of a scene worth an episode (waiting for the operator if needed).
+
+        seed only labels the episode (a real scene is what it is)."""
+        if self.robot.stopped:
+            raise RobotError(f"the robot is stopped ({self.robot.stopped}): clear it and resume first")
+        self.seed = -1 if seed is None else int(seed)
+        home = self.robot.go_home()
+        if not home.success:
+            raise RobotError(f"cannot move the robot home before an episode: {home.reason}")
+        if self.robot.holding():
+            raise RobotError("the tool still holds an object at the start of an episode: remove it")
+        obs = self._ready_observation()
+        self.depth_start = obs.depth_hm
+        self.progress = self._progress(obs.depth_hm)
+        self.obs, self.holding, self.steps, self.consecutive_failures = obs, False, 0, 0
+        self._episode_over = False
+        return obs
+
+    def _scene_problem(self, obs: Observation) -> str:
+        if self.stacking:
+            h = stack_height(obs.depth_hm, self.cfg.task.cube_size_m)
+            return f"a stack of {h} cubes stands in the workspace: un-stack the cubes" if h >= 2 else ""
+        return "the bin is empty: put objects in it" if self._empty(obs) else ""
+
+    def _ready_observation(self) -> Observation:
+        waited, deadline = False, self.cfg.robot.reset_wait_s
+        started = time.monotonic()
+        while True:
+            obs = self.observe()
+            problem = self._scene_problem(obs)
+            if problem and not self.stacking and len(self.workspaces) == 2:
+                other = self.observe(self.workspaces[1 - self.source])
+                if not self._empty(other):  # swap: the full bin becomes the source
+                    self.source = 1 - self.source
+                    log.info("source bin empty: swapped bins, now picking from bin %d", self.source)
+                    return other
+                problem = "both bins are empty: put objects in one"
+            if not problem:
+                if waited:
+                    log.info("scene ready after %.0f s", time.monotonic() - started)
+                return obs
+            if deadline and time.monotonic() - started > deadline:
+                raise RobotError(f"waited {deadline:.0f} s at reset: {problem}")
+            if not waited:
+                log.warning("waiting for the operator before the next episode: %s", problem)
+                waited = True
+            time.sleep(RESET_POLL_S)
+
+    # ---------------------------------------------------------------------------------------- steps
+    def _refusal(self, action: Action) -> str:
+        if action.primitive not in self.primitives:
+            return "primitive_not_allowed"
+        if action.primitive == "place" and not self.holding:
+            return "not_holding"
+        if action.primitive != "place" and self.holding:
+            return "holding_object"
+        if not (0 <= action.row < self.ws.height_px and 0 <= action.col < self.ws.width_px):
+            return "out_of_workspace"
+        return ""
+
+    def _execute(self, action: Action) -> MotionResult:
+        hm, ws, rc = self.obs.depth_hm, self.ws, self.cfg.robot
+        x, y, z = pixel_to_position(action.row, action.col, hm, ws)
+        if action.primitive == "push":
+            top = patch_max(hm, action.row, action.col, PUSH_PATCH_RADIUS_M, ws.resolution_m)
+            return self.robot.push(x, y, ws.z_min_m + top + rc.push_clearance_m, action.angle_rad)
+        if action.primitive == "pick":
+            result = self.robot.pick(x, y, z, action.angle_rad)
+            if result.success and not self.stacking:  # bin picking: into the destination bin
+                dx, dy = self._drop_xy()
+                dropped = self.robot.drop(dx, dy, ws.z_min_m + rc.drop_height_m)
+                if dropped.stopped:
+                    return dropped
+            return result
+        top = patch_max(hm, action.row, action.col, PLACE_PATCH_RADIUS_M, ws.resolution_m)
+        return self.robot.place(x, y, ws.z_min_m + top, action.angle_rad)
+
+    def _drop_xy(self) -> tuple[float, float]:
+        if len(self.workspaces) == 2:
+            dest = self.workspaces[1 - self.source]
+            return (dest.x_min_m + dest.x_max_m) / 2, (dest.y_min_m + dest.y_max_m) / 2
+        return self.cfg.robot.drop_xy_m
+
+    def step(self, action: Action) -> StepResult:
+        """Execute one primitive; failures come back as success False, a stop as done "robot_stopped"."""
+        if self._episode_over:
+            raise RuntimeError("the episode is over (or never started): call reset() first")
+        self.steps += 1
+        p_before, hm_before = self.progress, self.obs.depth_hm
+        reason = self._refusal(action)
+        result = MotionResult(False, reason) if reason else self._execute(action)
+        if result.stopped:
+            return self._stopped(action, result, p_before)
+        success, detail = result.success, result.reason
+        if action.primitive == "pick" and not reason:
+            self.holding = self.stacking and success and self.robot.holding()
+        if action.primitive == "place" and not reason:
+            self.holding = self.robot.holding()
+        self.obs = self.observe(holding=self.holding)
+        if action.primitive == "place" and success:
+            tall = self.cfg.task.cube_size_m
+            success = stack_height(self.obs.depth_hm, tall) > stack_height(hm_before, tall)
+            detail = "" if success else "stack_not_higher"
+        p_after = self.progress = self._progress(self.obs.depth_hm)
+        reversed_ = progress_reversed(p_before, p_after, self.cfg.reward.progress_tolerance)
+        reward = task_progress_reward(action.primitive, success, p_after, self.cfg.reward, reversed=reversed_)
+        self.consecutive_failures = 0 if success else self.consecutive_failures + 1
+        done_reason = self._done_reason()
+        self._episode_over = bool(done_reason)
+        info = {"seed": self.seed, "step": self.steps, "bin": self.source, "clamped": result.clamped,
+                "stack_height_hm": stack_height(self.obs.depth_hm, self.cfg.task.cube_size_m),
+                "occupied_fraction": occupied_fraction(self.obs.depth_hm, self.cfg.reward.occupied_height_m),
+                "consecutive_failures": self.consecutive_failures}
+        return StepResult(self.obs, success, p_before, p_after, reward, bool(done_reason), done_reason, detail, info)
+
+    def _stopped(self, action: Action, result: MotionResult, p_before: float) -> StepResult:
+        self._episode_over = True
+        self.paused = (f"the robot stopped ({result.stopped}) during a {action.primitive}; the actor will not move it "
+                       "until an operator has cleared the stop on the teach pendant and resumed the actor")
+        log.error(self.paused)
+        info = {"seed": self.seed, "step": self.steps, "bin": self.source, "stopped": result.stopped}
+        return StepResult(self.obs, False, p_before, p_before, 0.0, True, "robot_stopped", result.stopped, info)
+
+    def _done_reason(self) -> str:
+        if self.stacking:
+            if stack_height(self.obs.depth_hm, self.cfg.task.cube_size_m) >= self.cfg.task.goal_stack_height:
+                return "done"
+        elif self._empty(self.obs):
+            return "done"
+        if self.consecutive_failures >= self.cfg.sim.max_consecutive_failures:
+            return "consecutive_failures"
+        if self.steps >= self.cfg.sim.max_steps:
+            return "step_limit"
+        return ""
+
+    def try_resume(self) -> bool:
+        """After an operator's resume request: True (pause lifted) if the robot can move again."""
+        if not self.paused:
+            return True
+        if not self.robot.resume():
+            return False
+        self.paused = ""
+        return True
