@@ -108,6 +108,16 @@ def test_stacking_measures_the_stack_on_depth_and_waits_for_the_operator_to_unst
             env.close()
 
 
+class RecordingClient(InProcessReplayClient):
+    def __init__(self, store: ReplayStore):
+        super().__init__(store)
+        self.sent: list = []
+
+    def insert(self, transition, timeout_s: float = 10.0):
+        self.sent.append(transition)
+        return super().insert(transition, timeout_s)
+
+
 class NoWeights:
     def poll_weights(self):
         return None
@@ -135,8 +145,9 @@ def test_actor_pauses_on_a_protective_stop_and_moves_only_after_the_operator_res
     with fake_drivers(w):
         env = make_env(cfg, w)
         out: dict = {}
+        client = RecordingClient(store)
         thread = threading.Thread(target=lambda: out.update(stats=run_actor(
-            cfg, tmp_path, env, InProcessReplayClient(store), NoWeights(), stop)))
+            cfg, tmp_path, env, client, NoWeights(), stop)))
         thread.start()
         try:
             def paused() -> bool:
@@ -162,6 +173,9 @@ def test_actor_pauses_on_a_protective_stop_and_moves_only_after_the_operator_res
     assert out["stats"].actions == 3
     keys = sorted(store._by_key, key=lambda k: (k[1], k[2]))
     assert [k[1:] for k in keys] == [("ep000000", 0), ("ep000001", 0), ("ep000001", 1)]
+    first = client.sent[0]
+    assert (first.done, first.done_reason, first.success, first.reward) == (True, "robot_stopped", False, 0.0)
+    assert all(t.sim_seed is None for t in client.sent)  # a real scene cannot be re-simulated from a seed
     calls = [c["call"] for c in w.calls]
     assert calls.index("clear_stop") < len(calls) and \
         [c for c in w.calls[calls.index("clear_stop"):] if c["call"] == "moveL"]

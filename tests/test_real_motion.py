@@ -103,3 +103,23 @@ def test_robot_config_defaults_are_valid_and_capped():
     cfg = load_config_text("[robot]\nhost = \"10.0.0.2\"\nmove_speed_mps = 0.9\nmax_speed_mps = 0.3")
     assert cfg.robot.speed_cap == (0.3, 0.05)
     assert dataclasses.replace(RealSenseConfig(), serial="f1230450").serial == "f1230450"
+
+
+def test_shipped_real_robot_configs_load_and_keep_every_commanded_position_in_the_box():
+    from pathlib import Path
+
+    from romannet.actor.real.calibration import grid_positions
+    from romannet.actor.real.env import bin_workspaces
+    from romannet.common.config import load_config
+
+    files = sorted((Path(__file__).resolve().parents[1] / "configs" / "real").glob("*.toml"))
+    assert len(files) >= 2
+    for path in files:
+        cfg = load_config(path)
+        box = SafetyBox.from_config(cfg.robot)
+        assert inside(cfg.robot.home_pose, box), path
+        for p in grid_positions(cfg.calibration.grid_x_m, cfg.calibration.grid_y_m, cfg.calibration.grid_z_m):
+            assert inside(p, box), (path, p)
+        for ws in bin_workspaces(cfg):  # the heightmap of every bin lies inside the box in x and y
+            assert inside((ws.x_min_m, ws.y_min_m, box.low[2]), box) and \
+                inside((ws.x_max_m, ws.y_max_m, box.low[2]), box), (path, ws)

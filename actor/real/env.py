@@ -225,7 +225,7 @@ class RealEnv:
         self.consecutive_failures = 0 if success else self.consecutive_failures + 1
         done_reason = self._done_reason()
         self._episode_over = bool(done_reason)
-        info = {"seed": self.seed, "step": self.steps, "bin": self.source, "clamped": result.clamped,
+        info = {"episode_seed": self.seed, "step": self.steps, "bin": self.source, "clamped": result.clamped,
                 "stack_height_hm": stack_height(self.obs.depth_hm, self.cfg.task.cube_size_m),
                 "occupied_fraction": occupied_fraction(self.obs.depth_hm, self.cfg.reward.occupied_height_m),
                 "consecutive_failures": self.consecutive_failures}
@@ -236,7 +236,7 @@ class RealEnv:
         self.paused = (f"the robot stopped ({result.stopped}) during a {action.primitive}; the actor will not move it "
                        "until an operator has cleared the stop on the teach pendant and resumed the actor")
         log.error(self.paused)
-        info = {"seed": self.seed, "step": self.steps, "bin": self.source, "stopped": result.stopped}
+        info = {"episode_seed": self.seed, "step": self.steps, "bin": self.source, "stopped": result.stopped}
         return StepResult(self.obs, False, p_before, p_before, 0.0, True, "robot_stopped", result.stopped, info)
 
     def _done_reason(self) -> str:

@@ -9,6 +9,9 @@ Fake drivers find their world in one process-wide registry, by controller host n
 `World(...).register()` in-process, or the JSON file named by $ROMANNET_FAKE_WORLD, loaded on first use
 (subprocess tests). A world with `state_path` set rewrites that file (atomically, as `to_json()`) after
 every command, so a test can read a subprocess's final world back with `World.load(state_path)`.
+
+The camera (CameraModel, look_at, TABLE_RGB, re-exported here) and `World.render`'s ray casting live in
+fakerender.py.
 """
 
 from __future__ import annotations
@@ -25,11 +28,18 @@ from pathlib import Path
 
 import numpy as np
 
+try:
+    import fakerender
+except ModuleNotFoundError:  # this file was loaded by path, tests/fakes off sys.path (record_real_api.py)
+    _spec = importlib.util.spec_from_file_location("fakerender", Path(__file__).with_name("fakerender.py"))
+    fakerender = sys.modules["fakerender"] = importlib.util.module_from_spec(_spec)
+    _spec.loader.exec_module(fakerender)
+from fakerender import TABLE_RGB, CameraModel, look_at  # noqa: F401  (re-exported)
+
 ENV_WORLD = "ROMANNET_FAKE_WORLD"
 ROBOT_MODE_RUNNING = 7
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP = 1, 3
 SAFETY_SYSTEM_EMERGENCY_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 6, 7
-TABLE_RGB = (110, 100, 90)  # the colour checkerboard.py gives the table, so a board's blended edges match
 _SUPPORT_EPS_M = 0.005  # a surface this far above a released box's bottom still catches it
 
 
@@ -61,41 +71,6 @@ class Box:
         hx, hy = self.size_m[0] / 2, self.size_m[1] / 2
         local = np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
         return local @ np.array([[c, s], [-s, c]]) + np.asarray(self.center_m[:2])
-
-
-@dataclass
-class CameraModel:
-    """The world's RGB-D camera: OpenCV frame, p_base = T_base_cam @ p_cam; depth and colour aligned."""
-
-    serial: str = "fake-d435-0001"
-    T_base_cam: list[list[float]] = field(default_factory=lambda: look_at((0.5, 0.0, 0.9), (0.5, 0.0, 0.0)))
-    width: int = 640
-    height: int = 480
-    fx: float = 615.0
-    fy: float = 615.0
-    cx: float = 320.0
-    cy: float = 240.0
-    depth_scale: float = 0.001  # metres per z16 unit
-    depth_error_scale: float = 1.0  # the device reports true depth / this (a calibration must find it)
-    depth_noise_m: float = 0.0  # Gaussian, on every valid depth pixel
-    connected: bool = True  # False: the device is unplugged (no device connected)
-    timeout: bool = False  # True: wait_for_frames times out
-
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-
-def look_at(eye, target, up=(1.0, 0.0, 0.0)) -> list[list[float]]:
-    """T_base_cam (4x4, nested lists) of a camera at `eye` looking at `target`; `up` points to image top."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, np.asarray(up, float))
-    if np.linalg.norm(x) < 1e-9:  # looking along `up`: any perpendicular will do
-        x = np.cross(z, (0.0, 1.0, 0.0))
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, eye
-    return T.tolist()
 
 
 def rotvec_to_matrix(rv) -> np.ndarray:
@@ -364,81 +339,7 @@ class World:
     # ------------------------------------------------------------------------------------------ camera
     def render(self) -> tuple[np.ndarray, np.ndarray]:
         """What the camera sees now: colour uint8 (H, W, 3) RGB and true depth_m float32 (H, W), 0 = none."""
-        cam = self.camera
-        T = np.asarray(cam.T_base_cam, float)
-        key = (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, T.tobytes())
-        if self._rays is None or self._rays[0] != key:
-            u, v = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
-            d_cam = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], axis=-1)
-            self._rays = (key, d_cam @ T[:3, :3].T)  # base-frame directions with unit camera z: t is depth
-        rays, origin = self._rays[1], T[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t_table = np.where(rays[..., 2] < 0, -origin[2] / rays[..., 2], np.inf)
-        depth = np.where(t_table > 0, t_table, np.inf)
-        color = np.zeros(depth.shape + (3,), np.float64)
-        color[np.isfinite(depth)] = TABLE_RGB
-        with self._lock:
-            boxes = [dataclasses.replace(o) for o in self.objects]
-            tcp, board = list(self.tcp_pose), self.board
-        for box in boxes:
-            self._cast_box(box, rays, origin, T, depth, color)
-        depth = np.where(np.isfinite(depth), depth, 0.0)
-        color = np.clip(np.rint(color), 0, 255).astype(np.uint8)
-        if board:
-            color, depth = self._composite_board(board, tcp, color, depth)
-        depth = depth / cam.depth_error_scale
-        if cam.depth_noise_m > 0:
-            depth = np.where(depth > 0, depth + self._rng.normal(0.0, cam.depth_noise_m, depth.shape), 0.0)
-        return color, depth.astype(np.float32)
-
-    def _cast_box(self, box: Box, rays, origin, T, depth, color) -> None:
-        """Slab test of one box against the rays of its image-space bounding rectangle; nearer hits win."""
-        cam, half = self.camera, np.asarray(box.size_m) / 2
-        c, s = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
-        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # box -> base
-        signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
-        p_cam = (np.asarray(box.center_m) + (signs * half) @ rot.T - T[:3, 3]) @ T[:3, :3]
-        rows, cols = slice(None), slice(None)
-        if np.all(p_cam[:, 2] > 1e-6):  # all corners in front: only the projected rectangle can be hit
-            u = cam.fx * p_cam[:, 0] / p_cam[:, 2] + cam.cx
-            v = cam.fy * p_cam[:, 1] / p_cam[:, 2] + cam.cy
-            cols = slice(max(int(u.min()) - 1, 0), max(min(int(u.max()) + 2, cam.width), 0))
-            rows = slice(max(int(v.min()) - 1, 0), max(min(int(v.max()) + 2, cam.height), 0))
-        d = rays[rows, cols] @ rot  # ray directions in the box frame
-        if d.size == 0:
-            return
-        o = rot.T @ (origin - np.asarray(box.center_m))
-        d = np.where(np.abs(d) < 1e-12, 1e-12, d)
-        t1, t2 = (-half - o) / d, (half - o) / d
-        t_near, t_far = np.minimum(t1, t2), np.maximum(t1, t2)
-        t_in, t_out = t_near.max(axis=-1), t_far.min(axis=-1)
-        sub = depth[rows, cols]
-        hit = (t_in <= t_out) & (t_in > 0) & (t_in < sub)
-        face = t_near.argmax(axis=-1)  # the slab entered last is the face hit: z = top, shaded sides
-        shade = np.choose(face, [0.75, 0.6, 1.0])
-        sub[hit] = t_in[hit]
-        color[rows, cols][hit] = (np.asarray(box.rgb, float) * shade[..., None])[hit]
-
-    def _composite_board(self, board: dict, tcp, color, depth):
-        """Overlay checkerboard.py's view of the board on the tool where it is nearer than the scene."""
-        module = sys.modules.get("checkerboard")
-        if module is None:
-            spec = importlib.util.spec_from_file_location("checkerboard", Path(__file__).with_name("checkerboard.py"))
-            module = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(module)
-            sys.modules["checkerboard"] = module
-        cam = self.camera
-        extra = {k: v for k, v in board.items() if k not in ("board_offset_m", "pattern_corners", "square_m")}
-        b_color, b_depth = module.render_board_view(
-            np.asarray(cam.T_base_cam, float), cam.K(), (cam.height, cam.width), np.asarray(tcp, float),
-            board["board_offset_m"], tuple(board["pattern_corners"]), board["square_m"],
-            background_depth_m=0.0, **extra)
-        touched = np.any(b_color != np.asarray(TABLE_RGB, np.uint8), axis=-1) | (b_depth > 0)
-        nearer = (b_depth <= 0) | (depth <= 0) | (b_depth <= depth)
-        mask = touched & nearer
-        color = np.where(mask[..., None], b_color, color)
-        depth = np.where(mask & (b_depth > 0), b_depth, depth)
-        return color, depth
+        return fakerender.render(self)
 
     # -------------------------------------------------------------------------------------------- JSON
     def to_json(self) -> str:
