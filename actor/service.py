@@ -37,6 +37,7 @@ from romannet.common.action import Action, pixel_to_position
 from romannet.common.config import Config
 from romannet.common.config_actor import ActorConfig
 from romannet.common.configbase import dumps_toml
+from romannet.common.errors import RobotError
 from romannet.common.exploration import NonFiniteQError
 from romannet.common.interfaces import Env, Observation, ReplayClient, StepResult, WeightsSource
 from romannet.common.model import RoManNet, state_dict_to_tensors
@@ -230,7 +231,12 @@ class ActorLoop:
             while not self.stop.is_set() and not self.limits_reached():
                 if not self.wait_for_operator():
                     break
-                self.run_episode()
+                try:
+                    self.run_episode()
+                except RobotError as err:  # a robot stop before the episode's first action: pause, not crash
+                    if not getattr(self.env, "paused", ""):
+                        raise
+                    log.error("the episode could not start: %s", err)
         finally:
             self.stats.state = "stopping"
             self.write_status()

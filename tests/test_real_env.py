@@ -108,6 +108,24 @@ def test_stacking_measures_the_stack_on_depth_and_waits_for_the_operator_to_unst
             env.close()
 
 
+def test_a_stop_while_moving_home_at_reset_pauses_the_environment():
+    cfg = load_config(None, BASE)
+    w = make_world([("a", (0.45, -0.1))])
+    w.tcp_pose = [0.5, 0.1, 0.3, math.pi, 0.0, 0.0]  # not at home: reset moves
+    w.inject_protective_stop(after_moves=0)
+    with fake_drivers(w):
+        env = make_env(cfg, w)
+        try:
+            with pytest.raises(RobotError, match="stopped .protective_stop. moving home"):
+                env.reset(0)
+            assert "protective_stop" in env.paused and not env.try_resume()
+            w.clear_stop()
+            assert env.try_resume() and env.paused == ""
+            assert env.reset(1).depth_hm.max() > 0.04
+        finally:
+            env.close()
+
+
 class RecordingClient(InProcessReplayClient):
     def __init__(self, store: ReplayStore):
         super().__init__(store)

@@ -123,6 +123,10 @@ class RealEnv:
             raise RobotError(f"the robot is stopped ({self.robot.stopped}): clear it and resume first")
         self.seed = -1 if seed is None else int(seed)
         home = self.robot.go_home()
+        if home.stopped:
+            self.paused = (f"the robot stopped ({home.stopped}) moving home before an episode; the actor will not "
+                           "move it until an operator has cleared the stop and resumed the actor")
+            raise RobotError(self.paused)
         if not home.success:
             raise RobotError(f"cannot move the robot home before an episode: {home.reason}")
         if self.robot.holding():
