@@ -161,3 +161,21 @@ def test_windowed_curves_count_failed_episodes_against_efficiency():
     assert list(x) == [2] and math.isclose(rate[0], 0.5)
     assert windowed([], 5)[0].size == 0
     assert np.all((rate >= 0) & (rate <= 1))
+
+
+def test_repeated_failure_count_on_hand_made_step_records():
+    from romannet.bench.repeated_failures import count_repeats
+
+    def step(prim, row, col, ok, explored=False, version=1):
+        return {"primitive": prim, "row": row, "col": col, "success": ok, "explored": explored,
+                "weights_version": version}
+
+    episode = [step("pick", 5, 5, False), step("pick", 5, 5, False),  # greedy repeat, same weights
+               step("pick", 5, 5, False, version=2),  # greedy repeat on new weights
+               step("pick", 5, 5, False, explored=True),  # explored: not a greedy choice
+               step("pick", 7, 5, True),  # greedy after a failure, another pixel
+               step("pick", 7, 5, False)]  # after a success: not counted
+    out = count_repeats([episode, [step("push", 1, 1, False)]])
+    assert out["episodes"] == 2 and out["actions"] == 7
+    assert (out["greedy_after_failure"], out["repeats"], out["repeats_on_same_weights"]) == (3, 2, 1)
+    assert out["repeat_rate"] == 2 / 3 and out["pick_success"] == 1 / 6

@@ -1,0 +1,75 @@
+"""How often the greedy policy repeats the action that just failed, per training phase of a run.
+
+    python -m romannet.bench.repeated_failures runs/clutter --split 52 --json
+
+A failed pick or push leaves the scene as it was, so a greedy policy whose weights have not changed since
+picks the same pixel again. This reads the recorded episodes (`/step` records: primitive, pixel, explored,
+success, weights version) and counts, for the episodes before and from episode index `--split` on, how many
+greedy actions repeat the previous action exactly (same primitive and pixel) right after it failed, and how
+many of those repeats ran on the same weights version. Prints one JSON object (or a line per phase).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from romannet.common.episode_file import EpisodeFileError, episode_paths, read_episode
+
+
+def _steps(path: Path) -> list[dict]:
+    return [json.loads(m.data) for m in read_episode(path, topics=["/step"]).of("/step")]
+
+
+def phase_counts(files: list[Path]) -> dict:
+    """Counts over the episodes in `files` (see the module docstring)."""
+    return count_repeats([_steps(path) for path in files])
+
+
+def count_repeats(episodes: list[list[dict]]) -> dict:
+    """Counts over episodes given as their `/step` records, in order (see the module docstring)."""
+    actions = greedy_after_failure = repeats = repeats_same_weights = picks = picked = 0
+    for steps in episodes:
+        prev = None
+        for s in steps:
+            actions += 1
+            if s["primitive"] == "pick":
+                picks += 1
+                picked += int(bool(s["success"]))
+            if prev is not None and not prev["success"] and not s["explored"]:
+                greedy_after_failure += 1
+                if (s["primitive"], s["row"], s["col"]) == (prev["primitive"], prev["row"], prev["col"]):
+                    repeats += 1
+                    repeats_same_weights += int(s["weights_version"] == prev["weights_version"])
+            prev = s
+    return {"episodes": len(episodes), "actions": actions, "pick_success": picked / picks if picks else None,
+            "greedy_after_failure": greedy_after_failure, "repeats": repeats,
+            "repeat_rate": repeats / greedy_after_failure if greedy_after_failure else None,
+            "repeats_on_same_weights": repeats_same_weights}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("run_dir", help="a run directory (its episodes/) or a directory of episode files")
+    p.add_argument("--split", type=int, default=0, help="first episode index of the second phase (0: one phase)")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    root = Path(args.run_dir)
+    try:
+        files = episode_paths([root / "episodes" if (root / "episodes").is_dir() else root])
+    except EpisodeFileError as err:
+        print(err, file=sys.stderr)
+        return 2
+    index = {f: int(f.stem.lstrip("ep") or 0) for f in files}
+    phases = {"all": files} if args.split <= 0 else {
+        f"episodes < {args.split}": [f for f in files if index[f] < args.split],
+        f"episodes >= {args.split}": [f for f in files if index[f] >= args.split]}
+    out = {name: phase_counts(group) for name, group in phases.items()}
+    print(json.dumps(out, indent=2) if args.json else "\n".join(f"{k}: {v}" for k, v in out.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
