@@ -48,3 +48,28 @@ def test_action_validates():
         Action("grasp", 0, 0, 0.0, 0.0)
     with pytest.raises(ValueError, match="finite"):
         Action("pick", 0, 0, float("nan"), 0.0)
+
+
+def test_refusal_rules_shared_by_the_simulator_and_real_robots():
+    from romannet.common.action import Action, refusal
+
+    prims = ("push", "pick")
+    assert refusal(Action("pick", 3, 4, 0.0, 0.0), prims, False, (8, 8)) == ""
+    assert refusal(Action("place", 3, 4, 0.0, 0.0), prims, True, (8, 8)) == "primitive_not_allowed"
+    assert refusal(Action("place", 3, 4, 0.0, 0.0), ("pick", "place"), False, (8, 8)) == "not_holding"
+    assert refusal(Action("pick", 3, 4, 0.0, 0.0), prims, True, (8, 8)) == "holding_object"
+    assert refusal(Action("pick", 8, 0, 0.0, 0.0), prims, False, (8, 8)) == "out_of_workspace"
+    assert refusal(Action("pick", 0, -1, 0.0, 0.0), prims, False, (8, 8)) == "out_of_workspace"
+
+
+def test_patch_max_takes_the_highest_point_around_the_pixel_clipped_at_the_edges():
+    import numpy as np
+
+    from romannet.common.action import patch_max
+
+    hm = np.zeros((10, 10), dtype=np.float32)
+    hm[0, 0], hm[5, 7], hm[9, 9] = 0.05, 0.02, 0.09
+    assert patch_max(hm, 5, 5, 0.004, 0.002) == np.float32(0.02)  # radius 2 px reaches column 7
+    assert patch_max(hm, 5, 5, 0.002, 0.002) == 0.0  # radius 1 px does not
+    assert patch_max(hm, 1, 1, 0.002, 0.002) == np.float32(0.05)  # the window is clipped at the corner
+    assert patch_max(hm, 9, 9, 0.0001, 0.002) == np.float32(0.09)  # at least one pixel around

@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from romannet.common.action import Action, pixel_to_position
+from romannet.common.action import Action, patch_max, pixel_to_position, refusal
 from romannet.common.config import Config, WorkspaceConfig
 from romannet.common.errors import RobotError
 from romannet.common.heightmap import get_heightmaps
@@ -57,12 +57,6 @@ def bin_workspaces(cfg: Config) -> list[WorkspaceConfig]:
 def occupied_fraction(depth_hm: np.ndarray, occupied_height_m: float) -> float:
     """Share of the heightmap above occupied_height_m (what "empty bin" is judged on)."""
     return float(np.mean(depth_hm > occupied_height_m))
-
-
-def patch_max(depth_hm: np.ndarray, row: int, col: int, radius_m: float, resolution_m: float) -> float:
-    """Highest depth_hm value (m above the floor) within radius_m of pixel (row, col)."""
-    r = max(1, round(radius_m / resolution_m))
-    return float(depth_hm[max(0, row - r):row + r + 1, max(0, col - r):col + r + 1].max())
 
 
 class RealEnv:
@@ -109,10 +103,12 @@ class RealEnv:
     def _empty(self, obs: Observation) -> bool:
         return occupied_fraction(obs.depth_hm, self.cfg.reward.occupied_height_m) < self.cfg.robot.empty_occupied_fraction
 
-    def _progress(self, depth_hm: np.ndarray) -> float:
-        if self.stacking:
-            return stacking_progress(stack_height(depth_hm, self.cfg.task.cube_size_m), self.cfg.task.goal_stack_height)
-        return clutter_progress(depth_hm, self.depth_start, self.cfg.reward.occupied_height_m)
+    def _measure(self, obs: Observation) -> None:
+        """What the step needs of a new observation, measured once: stack height (cubes), occupied share, P."""
+        self.stack_h = stack_height(obs.depth_hm, self.cfg.task.cube_size_m)
+        self.occupied = occupied_fraction(obs.depth_hm, self.cfg.reward.occupied_height_m)
+        self.progress = stacking_progress(self.stack_h, self.cfg.task.goal_stack_height) if self.stacking else \
+            clutter_progress(obs.depth_hm, self.depth_start, self.cfg.reward.occupied_height_m)
 
     # ------------------------------------------------------------------------------------- episodes
     def reset(self, seed: int | None = None) -> Observation:
@@ -133,7 +129,7 @@ class RealEnv:
             raise RobotError("the tool still holds an object at the start of an episode: remove it")
         obs = self._ready_observation()
         self.depth_start = obs.depth_hm
-        self.progress = self._progress(obs.depth_hm)
+        self._measure(obs)
         self.obs, self.holding, self.steps, self.consecutive_failures = obs, False, 0, 0
         self._episode_over = False
         return obs
@@ -169,17 +165,6 @@ class RealEnv:
             time.sleep(RESET_POLL_S)
 
     # ---------------------------------------------------------------------------------------- steps
-    def _refusal(self, action: Action) -> str:
-        if action.primitive not in self.primitives:
-            return "primitive_not_allowed"
-        if action.primitive == "place" and not self.holding:
-            return "not_holding"
-        if action.primitive != "place" and self.holding:
-            return "holding_object"
-        if not (0 <= action.row < self.ws.height_px and 0 <= action.col < self.ws.width_px):
-            return "out_of_workspace"
-        return ""
-
     def _execute(self, action: Action) -> MotionResult:
         hm, ws, rc = self.obs.depth_hm, self.ws, self.cfg.robot
         x, y, z = pixel_to_position(action.row, action.col, hm, ws)
@@ -208,8 +193,8 @@ class RealEnv:
         if self._episode_over:
             raise RuntimeError("the episode is over (or never started): call reset() first")
         self.steps += 1
-        p_before, hm_before = self.progress, self.obs.depth_hm
-        reason = self._refusal(action)
+        p_before, height_before = self.progress, self.stack_h
+        reason = refusal(action, self.primitives, self.holding, self.obs.depth_hm.shape)
         result = MotionResult(False, reason) if reason else self._execute(action)
         if result.stopped:
             return self._stopped(action, result, p_before)
@@ -219,19 +204,18 @@ class RealEnv:
         if action.primitive == "place" and not reason:
             self.holding = self.robot.holding()
         self.obs = self.observe(holding=self.holding)
+        self._measure(self.obs)
         if action.primitive == "place" and success:
-            tall = self.cfg.task.cube_size_m
-            success = stack_height(self.obs.depth_hm, tall) > stack_height(hm_before, tall)
+            success = self.stack_h > height_before
             detail = "" if success else "stack_not_higher"
-        p_after = self.progress = self._progress(self.obs.depth_hm)
+        p_after = self.progress
         reversed_ = progress_reversed(p_before, p_after, self.cfg.reward.progress_tolerance)
         reward = task_progress_reward(action.primitive, success, p_after, self.cfg.reward, reversed=reversed_)
         self.consecutive_failures = 0 if success else self.consecutive_failures + 1
         done_reason = self._done_reason()
         self._episode_over = bool(done_reason)
         info = {"episode_seed": self.seed, "step": self.steps, "bin": self.source, "clamped": result.clamped,
-                "stack_height_hm": stack_height(self.obs.depth_hm, self.cfg.task.cube_size_m),
-                "occupied_fraction": occupied_fraction(self.obs.depth_hm, self.cfg.reward.occupied_height_m),
+                "stack_height_hm": self.stack_h, "occupied_fraction": self.occupied,
                 "consecutive_failures": self.consecutive_failures}
         return StepResult(self.obs, success, p_before, p_after, reward, bool(done_reason), done_reason, detail, info)
 
@@ -245,9 +229,9 @@ class RealEnv:
 
     def _done_reason(self) -> str:
         if self.stacking:
-            if stack_height(self.obs.depth_hm, self.cfg.task.cube_size_m) >= self.cfg.task.goal_stack_height:
+            if self.stack_h >= self.cfg.task.goal_stack_height:
                 return "done"
-        elif self._empty(self.obs):
+        elif self.occupied < self.cfg.robot.empty_occupied_fraction:
             return "done"
         if self.consecutive_failures >= self.cfg.sim.max_consecutive_failures:
             return "consecutive_failures"

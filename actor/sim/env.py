@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from romannet.common.action import Action, pixel_to_position
+from romannet.common.action import Action, patch_max, pixel_to_position, refusal
 from romannet.common.config import CameraConfig, Config, RewardConfig, TaskConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
 from romannet.common.interfaces import Observation, StepResult
@@ -134,36 +134,19 @@ class SimEnv:
         return stack_height_from_poses(self.scene, self.task.cube_size_m, exclude=self.held_body)
 
     # ------------------------------------------------------------------------------------------ step
-    def _patch_max(self, row: int, col: int, radius_m: float) -> float:
-        """Highest depth_hm value (m above the table) within radius_m of pixel (row, col)."""
-        r = max(1, round(radius_m / self.ws.resolution_m))
-        hm = self.obs.depth_hm
-        return float(hm[max(0, row - r):row + r + 1, max(0, col - r):col + r + 1].max())
-
-    def _refusal(self, action: Action) -> str:
-        """Why the action cannot be attempted at all ("" if it can)."""
-        if action.primitive not in self.primitives:
-            return "primitive_not_allowed"
-        if action.primitive == "place" and not self.holding:
-            return "not_holding"
-        if action.primitive != "place" and self.holding:
-            return "holding_object"
-        if not (0 <= action.row < self.ws.height_px and 0 <= action.col < self.ws.width_px):
-            return "out_of_workspace"
-        return ""
-
     def _execute(self, action: Action) -> PrimitiveResult:
         assert self.prims is not None
         x, y, z = pixel_to_position(action.row, action.col, self.obs.depth_hm, self.ws)
         if action.primitive == "push":
-            z_push = max(self._patch_max(action.row, action.col, PUSH_PATCH_RADIUS_M) + PUSH_CLEARANCE_M,
+            z_push = max(patch_max(self.obs.depth_hm, action.row, action.col, PUSH_PATCH_RADIUS_M, self.ws.resolution_m) + PUSH_CLEARANCE_M,
                          PUSH_MIN_HEIGHT_M)
             return self.prims.push(x, y, z_push + self.ws.z_min_m, action.angle_rad)
         if action.primitive == "pick":
             return self.prims.pick(x, y, z, action.angle_rad, remove_held=self.task_def.remove_picked)
         if self.prims.held_body() != self.held_body:  # the object slipped out on the way
             return PrimitiveResult(False, "dropped", 0)
-        z_place = self._patch_max(action.row, action.col, PLACE_PATCH_RADIUS_M) + self.ws.z_min_m
+        z_place = patch_max(self.obs.depth_hm, action.row, action.col, PLACE_PATCH_RADIUS_M,
+                            self.ws.resolution_m) + self.ws.z_min_m
         return self.prims.place(x, y, z_place, action.angle_rad, self.hang_m)
 
     def step(self, action: Action) -> StepResult:
@@ -172,7 +155,7 @@ class SimEnv:
             raise RuntimeError("the episode is over (or never started): call reset() first")
         self.steps += 1
         p_before, hm_before = self.progress, self.obs.depth_hm
-        reason = self._refusal(action)
+        reason = refusal(action, self.primitives, self.holding, self.obs.depth_hm.shape)
         result = PrimitiveResult(False, reason, 0) if reason else self._execute(action)
         success, detail = result.success, result.reason
         if action.primitive == "pick" and not reason:
