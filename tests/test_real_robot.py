@@ -3,6 +3,7 @@ signatures, checked in test_real_fakes.py), and on the real drivers where no dev
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import math
 
@@ -95,6 +96,21 @@ def test_suction_pick_and_place_report_the_vacuum_sensor(cell):
     assert w.tool_out[0] is False  # the vacuum was switched off again
     assert robot.place(0.5, 0.0, 0.0, 0.0).reason == "dropped"  # nothing held: no motion
     assert np.allclose(w.tcp_pose, HOME)
+
+
+def test_the_tool_settle_wait_is_spent_only_when_the_tool_changes(cell, monkeypatch):
+    import romannet.actor.real.ur as ur
+
+    w, robot = cell
+    waits: list[float] = []
+    monkeypatch.setattr(ur.time, "sleep", waits.append)
+    robot.cfg = dataclasses.replace(robot.cfg, vacuum_settle_s=0.3)
+    io_before = sum(c["call"] == "setToolDigitalOut" for c in w.calls)
+    assert robot.push(0.5, 0.0, 0.02, 0.0).success  # suction: the vacuum is off and stays off
+    assert waits == []
+    assert sum(c["call"] == "setToolDigitalOut" for c in w.calls) > io_before  # still written, not skipped
+    assert robot.pick(0.5, 0.1, 0.05, 0.0).success and waits == [0.3]  # vacuum on
+    assert robot.place(0.4, -0.1, 0.05, 0.0).success and waits == [0.3, 0.3]  # and off again
 
 
 def test_gripper_success_from_the_finger_width():

@@ -163,8 +163,12 @@ class URRobot(CartesianRobot):
             io.setStandardDigitalOut(pin, active)
         if not ok:
             raise RobotError(f"the controller refused to set {self.cfg.tool_output} digital output {pin}")
-        self._tool_active = active
-        time.sleep(self.cfg.vacuum_settle_s)  # the vacuum builds up / the fingers travel
+        changed, self._tool_active = active != self._tool_active, active
+        # The output is written every time (cheap, and right even if something else changed it), but the wait
+        # for the vacuum to build up / the fingers to travel only when the command changed: a suction push
+        # starts by switching off a vacuum that is already off, and 0.3 s of every such action was idle.
+        if changed:
+            time.sleep(self.cfg.vacuum_settle_s)
 
     def gripper_width_m(self) -> float:
         """Finger width from the analog input (robot.width_per_volt_m * volts + robot.width_offset_m)."""
