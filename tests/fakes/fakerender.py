@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from romannet.common import heightmap
+
 if TYPE_CHECKING:
     from fakeworld import Box, World
 
@@ -47,16 +49,9 @@ class CameraModel:
 
 
 def look_at(eye, target, up=(1.0, 0.0, 0.0)) -> list[list[float]]:
-    """T_base_cam (4x4, nested lists) of a camera at `eye` looking at `target`; `up` points to image top."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, np.asarray(up, float))
-    if np.linalg.norm(x) < 1e-9:  # looking along `up`: any perpendicular will do
-        x = np.cross(z, (0.0, 1.0, 0.0))
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, eye
-    return T.tolist()
+    """T_base_cam (4x4, nested lists: the world's JSON form) of a camera at `eye` looking at `target`; `up`
+    points to the image top (common.heightmap.look_at, the project's own)."""
+    return heightmap.look_at(eye, target, up).tolist()
 
 
 def render(world: World) -> tuple[np.ndarray, np.ndarray]:
