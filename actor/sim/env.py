@@ -84,7 +84,7 @@ class SimEnv:
         self.arm = robot_cls(self.scene.client, self.sim)
         self.scene.robot_id = self.arm.body_id
         self.prims = Primitives(self.scene, self.arm, self.sim)
-        build_scene(self.scene, self.task_def, object_specs(self.task_def, self.sim, self.ws, self.rng))
+        build_scene(self.scene, self.task_def, object_specs(self.task_def, self.sim, self.ws, self.rng), self.rng)
         self.holding, self.held_body, self.hang_m = False, None, 0.0
         self.steps = 0
         self.consecutive_failures = 0

@@ -58,7 +58,13 @@ NOVEL_OBJECT_SCALE = 0.5
 NOVEL_STRIDE, NOVEL_COUNT = 20, 49  # random_urdfs 000, 020, ..., 960: 49 objects, as EGAD's evaluation set
 LATERAL_FRICTION = 0.6
 SPINNING_FRICTION = 0.001  # without it, objects pivot forever about a single contact point
-ROLLING_FRICTION = 0.0001  # without it, cylinders roll off the table after a push
+ROLLING_FRICTION = 0.0001  # Bullet's rolling resistance (m): without any, resting bodies creep
+# The cylinder lies on its side after most drops and then rolls: with ROLLING_FRICTION one rolling at 0.3 m/s
+# went 56 cm (1 m/s: 1.2 m), off the workspace and, in 30-block scenes, off the table while the scene was
+# built. 0.005 m (a table mat) stops it within 4 cm (1 m/s: 30 cm). Not for every object: a rolling
+# resistance this large also lets a 3 cm pillar balance on an edge with its centre of mass 2 mm past it.
+ROUND_ROLLING_FRICTION = 0.005
+_ROUND_SHAPES = ("cylinder",)
 _BOX_SHAPES = ("square_slab", "cuboid", "cube", "pillar")  # single boxes: use Bullet's box primitive
 
 
@@ -86,10 +92,11 @@ def block_mesh_path(shape: str) -> Path:
     return ASSETS_DIR / "blocks" / f"{shape}.obj"
 
 
-def _set_dynamics(client: int, body: int, mass_kg: float | None = None) -> None:
+def _set_dynamics(client: int, body: int, mass_kg: float | None = None,
+                  rolling_friction: float = ROLLING_FRICTION) -> None:
     kwargs = {} if mass_kg is None else {"mass": mass_kg}
     p.changeDynamics(body, -1, lateralFriction=LATERAL_FRICTION, spinningFriction=SPINNING_FRICTION,
-                     rollingFriction=ROLLING_FRICTION, restitution=0.0, physicsClientId=client, **kwargs)
+                     rollingFriction=rolling_friction, restitution=0.0, physicsClientId=client, **kwargs)
 
 
 def _spawn_block(client: int, spec: ObjectSpec) -> int:
@@ -107,7 +114,8 @@ def _spawn_block(client: int, spec: ObjectSpec) -> int:
     mass = BLOCK_DENSITY_KG_M3 * block_volume_m3(spec.shape) * s**3
     body = p.createMultiBody(mass, col, vis, list(spec.position_m), list(spec.orientation_xyzw),
                              physicsClientId=client)
-    _set_dynamics(client, body)
+    _set_dynamics(client, body,
+                  rolling_friction=ROUND_ROLLING_FRICTION if spec.shape in _ROUND_SHAPES else ROLLING_FRICTION)
     return body
 
 

@@ -138,11 +138,16 @@ class Scene:
                          physicsClientId=c)
         self.objects.append(body_id)
 
-    def remove_object(self, body_id: int, settle_steps: int = 120) -> None:
-        """Take a picked object out of the world (clutter removal) and let the rest settle (and sleep)."""
+    def discard_object(self, body_id: int) -> None:
+        """Delete a body from the world and the registry (no settling: the caller steps the world)."""
         p.removeBody(body_id, physicsClientId=self.client)
         self.objects.remove(body_id)
         self.local_half_extents_m.pop(body_id, None)
+        self._calm.pop(body_id, None)
+
+    def remove_object(self, body_id: int, settle_steps: int = 120) -> None:
+        """Take a picked object out of the world (clutter removal) and let the rest settle (and sleep)."""
+        self.discard_object(body_id)
         for other in self.objects:  # one may have rested on the removed body: it must fall, not float
             p.changeDynamics(other, -1, activationState=p.ACTIVATION_STATE_WAKE_UP, physicsClientId=self.client)
         self.settle(settle_steps)

@@ -28,6 +28,8 @@ from .scene import Scene
 log = logging.getLogger(__name__)
 
 DROP_STEPS = 60  # physics steps between two dropped objects, so they land one after another
+DROP_MARGIN_M = 0.05  # dropped objects start this far inside the workspace edges
+REDROP_ROUNDS = 3  # objects that landed outside the workspace are dropped again, at most this often
 SPREAD_MIN_DISTANCE_M = 0.09  # stacking cubes start this far apart (centre to centre): none touches another
 SPREAD_TRIES = 100
 
@@ -71,7 +73,8 @@ def object_specs(td: TaskDef, sim: SimConfig, ws: WorkspaceConfig, rng: np.rando
     """The episode's objects, drawn from rng (deterministic for a given seed)."""
     if td.kind == "arrangement":
         return load_case(case_path(sim, rng), ws)
-    specs = random_object_specs(rng, td.object_set, td.num_objects, ws, drop_height_m=sim.drop_height_m)
+    specs = random_object_specs(rng, td.object_set, td.num_objects, ws, drop_height_m=sim.drop_height_m,
+                                margin_m=DROP_MARGIN_M)
     return specs if td.drop else _spread_on_table(specs, rng, ws)
 
 
@@ -94,13 +97,54 @@ def _spread_on_table(specs: list[ObjectSpec], rng: np.random.Generator, ws: Work
     return out
 
 
-def build_scene(scene: Scene, td: TaskDef, specs: list[ObjectSpec]) -> None:
-    """Spawn the objects into an emptied scene (dropping them one by one if the task says so) and settle."""
+def build_scene(scene: Scene, td: TaskDef, specs: list[ObjectSpec], rng: np.random.Generator | None = None) -> None:
+    """Spawn the objects into an emptied scene (dropping them one by one if the task says so) and settle.
+
+    Dropped objects that bounced or rolled out of the workspace are dropped again at a new place drawn from
+    rng (up to REDROP_ROUNDS times), so an episode starts with its objects where the camera and the arm
+    reach them (VPG restarts such a scene; a stray left near the table edge fell off at the first push).
+    """
+    spawned: dict[int, ObjectSpec] = {}
     for spec in specs:
-        scene.add_object(spawn_object(scene.client, spec))
+        body = spawn_object(scene.client, spec)
+        scene.add_object(body)
+        spawned[body] = spec
         if td.drop:
             scene.step(DROP_STEPS)
     scene.settle(scene.sim.settle_steps)
+    if td.drop and rng is not None:
+        redrop_strays(scene, spawned, rng)
+
+
+def redrop_strays(scene: Scene, spawned: dict[int, ObjectSpec], rng: np.random.Generator,
+                  rounds: int = REDROP_ROUNDS) -> int:
+    """Drop every object whose centre is outside the workspace again from a new random place above it (the
+    same object, x, y drawn from rng as for the first drop), then settle; repeat up to `rounds` times.
+
+    spawned maps body id -> the spec it was spawned from (updated for the new bodies). Returns how many
+    objects are still outside the workspace (logged; 0 nearly always).
+    """
+    ws = scene.ws
+    strays = [b for b in scene.objects if not scene.in_workspace(b)]
+    for round_ in range(rounds):
+        if not strays:
+            break
+        log.debug("re-dropping %d object(s) that landed outside the workspace (round %d)", len(strays), round_ + 1)
+        for body in strays:
+            spec = spawned.pop(body)
+            scene.discard_object(body)
+            x = float(rng.uniform(ws.x_min_m + DROP_MARGIN_M, ws.x_max_m - DROP_MARGIN_M))
+            y = float(rng.uniform(ws.y_min_m + DROP_MARGIN_M, ws.y_max_m - DROP_MARGIN_M))
+            spec = dataclasses.replace(spec, position_m=(x, y, ws.z_min_m + scene.sim.drop_height_m))
+            new = spawn_object(scene.client, spec)
+            scene.add_object(new)
+            spawned[new] = spec
+            scene.step(DROP_STEPS)
+        scene.settle(scene.sim.settle_steps)
+        strays = [b for b in scene.objects if not scene.in_workspace(b)]
+    if strays:
+        log.warning("%d object(s) still outside the workspace after %d re-drops", len(strays), rounds)
+    return len(strays)
 
 
 def objects_in_workspace(scene: Scene) -> int:
