@@ -104,6 +104,18 @@ def test_summary_averages_over_completed_runs_and_reports_end_reasons():
     assert s.mean_actions == pytest.approx((3 + 4 + 11 + 13 + 2) / 5)
 
 
+def test_pooled_pick_success_and_share_picked_count_every_run():
+    runs = [run("p1 p1 p1", ideal=3),  # complete: 3 of 3 objects picked
+            run("p1 " + "p0 " * 10, ideal=4, end="consecutive_failures"),  # 1 of 4 picked, 1 of 11 picks
+            run("P1 p1 p0", ideal=2, end="step_limit")]  # 1 of 2; the push is no pick attempt
+    s = summarize(runs)
+    assert s.pick_success_rate == pytest.approx(1.0)  # the paper's: completed runs only
+    assert s.pick_success_all_runs == pytest.approx((3 + 1 + 1) / (3 + 11 + 2))
+    assert s.median_share_picked == pytest.approx(0.5)  # of 1.0, 0.25, 0.5
+    assert summarize(runs, removal=False).median_share_picked is None  # stacking: no objects to remove
+    assert summarize([run("P1 P0", ideal=2)]).pick_success_all_runs is None
+
+
 def test_summary_of_runs_without_any_completion_has_no_rates():
     s = summarize([run("p0 " * 10, end="consecutive_failures")])
     assert s.completion_rate == 0.0 and s.pick_success_rate is None and s.action_efficiency is None
@@ -179,3 +191,20 @@ def test_repeated_failure_count_on_hand_made_step_records():
     assert out["episodes"] == 2 and out["actions"] == 7
     assert (out["greedy_after_failure"], out["repeats"], out["repeats_on_same_weights"]) == (3, 2, 1)
     assert out["repeat_rate"] == 2 / 3 and out["pick_success"] == 1 / 6
+
+
+def test_report_table_shows_the_papers_metrics_and_the_pooled_ones():
+    from romannet.evaluate.report import build_report, markdown
+
+    header = {"task": "clutter", "protocol": "frozen", "checkpoint": "ckpt-000000001", "updates": 1,
+              "runs_per_case": 2, "base_seed": 100000, "workers": 1, "wall_s": 3.0, "machine": "test box"}
+    report = build_report([run("p1 p1 p1", ideal=3), run("p1 " + "p0 " * 10, ideal=4, end="consecutive_failures")],
+                          header)
+    table = markdown(report)
+    assert "| c | 2 | 50.0 % | 100.0 % | 100.0 % | 28.6 % | 62.5 % | 7.0 | consecutive_failures 1, done 1 |" in table
+    # A report written before the pooled columns existed still renders (they show as "–").
+    for key in ("pick_success_all_runs", "median_share_picked"):
+        del report["cases"]["c"][key]
+    assert "| c | 2 | 50.0 % | 100.0 % | 100.0 % | – | – | 7.0 |" in markdown(report)
+    stacking = build_report([run("p1 L1", ideal=2)], {**header, "task": "stacking"})
+    assert stacking["overall"]["median_share_picked"] is None

@@ -14,6 +14,10 @@ action efficiency  ideal / actual actions of one completed run, averaged over co
                    to height h (one pick and one place per cube added to the first). Capped at 1: in
                    clutter a push can clear an object out of the workspace without a pick, which would
                    otherwise read as better than ideal.
+
+Two more numbers that are not the paper's, because averages over completed runs hide the runs that failed:
+pick success over all runs (successful picks / pick attempts, pooled over every run) and, for the removal
+tasks, the median share of the scene's objects a run picked (successful picks / objects at the start).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from statistics import mean
+from statistics import mean, median
 
 MAX_CONSECUTIVE_FAILURES = 10  # the paper's completion criterion
 
@@ -95,6 +99,17 @@ def action_efficiency(run: RunLog) -> float | None:
     return min(1.0, run.ideal_actions / run.actions) if run.actions else None
 
 
+def pooled_pick_success(runs: Sequence[RunLog]) -> float | None:
+    """Successful picks / pick attempts over every run, completed or not; None without any pick."""
+    picks = [s.success for r in runs for s in r.steps if s.primitive == "pick"]
+    return sum(picks) / len(picks) if picks else None
+
+
+def share_picked(run: RunLog) -> float:
+    """Removal tasks: the share of the scene's objects (its ideal count) the run picked, capped at 1."""
+    return min(1.0, sum(s.success for s in run.steps if s.primitive == "pick") / max(1, run.ideal_actions))
+
+
 def _mean_or_none(values: Sequence[float | None]) -> float | None:
     kept = [v for v in values if v is not None]
     return mean(kept) if kept else None
@@ -112,16 +127,20 @@ class Summary:
     mean_actions: float | None  # over all runs
     end_reasons: dict[str, int]
     solved_all: bool  # every run completed
+    pick_success_all_runs: float | None = None  # pooled over every run (not the paper's metric)
+    median_share_picked: float | None = None  # removal tasks: median share of the objects a run picked
 
     def as_dict(self) -> dict:
         return {"runs": self.runs, "completed": self.completed, "completion_rate": self.completion_rate,
                 "pick_success_rate": self.pick_success_rate, "action_efficiency": self.action_efficiency,
                 "mean_actions": self.mean_actions, "end_reasons": dict(self.end_reasons),
-                "solved_all": self.solved_all}
+                "solved_all": self.solved_all, "pick_success_all_runs": self.pick_success_all_runs,
+                "median_share_picked": self.median_share_picked}
 
 
-def summarize(runs: Sequence[RunLog], limit: int = MAX_CONSECUTIVE_FAILURES) -> Summary:
-    """Completion rate, pick success and efficiency (over completed runs), end reasons of `runs`."""
+def summarize(runs: Sequence[RunLog], limit: int = MAX_CONSECUTIVE_FAILURES, removal: bool = True) -> Summary:
+    """Completion rate, pick success and efficiency (over completed runs), end reasons of `runs`, and the
+    pooled pick success and (removal tasks: `removal`) the median share of objects picked."""
     if not runs:
         raise ValueError("no runs to summarize")
     done = [r for r in runs if completed(r, limit)]
@@ -131,7 +150,8 @@ def summarize(runs: Sequence[RunLog], limit: int = MAX_CONSECUTIVE_FAILURES) -> 
         action_efficiency=_mean_or_none([action_efficiency(r) for r in done]),
         mean_actions=mean(r.actions for r in runs),
         end_reasons=dict(sorted(Counter(_reason_key(r, limit) for r in runs).items())),
-        solved_all=len(done) == len(runs))
+        solved_all=len(done) == len(runs), pick_success_all_runs=pooled_pick_success(runs),
+        median_share_picked=median(share_picked(r) for r in runs) if removal else None)
 
 
 def _reason_key(run: RunLog, limit: int) -> str:
@@ -141,12 +161,13 @@ def _reason_key(run: RunLog, limit: int) -> str:
     return run.end_reason
 
 
-def by_case(runs: Sequence[RunLog], limit: int = MAX_CONSECUTIVE_FAILURES) -> dict[str, Summary]:
+def by_case(runs: Sequence[RunLog], limit: int = MAX_CONSECUTIVE_FAILURES, removal: bool = True
+            ) -> dict[str, Summary]:
     """One Summary per case name, in the order cases first appear."""
     cases: dict[str, list[RunLog]] = {}
     for r in runs:
         cases.setdefault(r.case, []).append(r)
-    return {case: summarize(rs, limit) for case, rs in cases.items()}
+    return {case: summarize(rs, limit, removal) for case, rs in cases.items()}
 
 
 def cases_solved_in_all_runs(per_case: dict[str, Summary]) -> int:

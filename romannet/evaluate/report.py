@@ -21,8 +21,9 @@ def build_report(runs: Sequence[RunLog], header: dict[str, Any]) -> dict[str, An
         return {**header, "overall": None, "cases": {}, "cases_solved_in_all_runs": 0, "runs": []}
     from .protocol import run_to_json
 
-    per_case = by_case(runs)
-    return {**header, "overall": summarize(runs).as_dict(),
+    removal = header.get("task") != "stacking"
+    per_case = by_case(runs, removal=removal)
+    return {**header, "overall": summarize(runs, removal=removal).as_dict(),
             "cases": {name: s.as_dict() for name, s in per_case.items()},
             "cases_solved_in_all_runs": cases_solved_in_all_runs(per_case),
             "runs": [run_to_json(r) for r in runs]}
@@ -32,7 +33,8 @@ def _row(name: str, s: Summary) -> str:
     reasons = ", ".join(f"{k} {v}" for k, v in s.end_reasons.items())
     mean_actions = "–" if s.mean_actions is None else f"{s.mean_actions:.1f}"
     return (f"| {name} | {s.runs} | {_pct(s.completion_rate)} | {_pct(s.pick_success_rate)} | "
-            f"{_pct(s.action_efficiency)} | {mean_actions} | {reasons} |")
+            f"{_pct(s.action_efficiency)} | {_pct(s.pick_success_all_runs)} | {_pct(s.median_share_picked)} | "
+            f"{mean_actions} | {reasons} |")
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -43,10 +45,11 @@ def markdown(report: dict[str, Any]) -> str:
              f"{report['workers']} worker process(es), {report['wall_s']:.0f} s on {report['machine']}."]
     if report.get("interrupted"):
         lines.append(f"**Interrupted**: {len(report['runs'])} of {report['planned_runs']} planned runs finished.")
-    lines += ["", "| case | runs | completion | pick success | action efficiency | mean actions | end reasons |",
-              "|---|---:|---:|---:|---:|---:|---|"]
+    lines += ["", "| case | runs | completion | pick success | action efficiency | pick success, all runs | "
+                  "objects picked (median) | mean actions | end reasons |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
     if report["overall"] is None:
-        return "\n".join(lines + ["| (no run finished) | 0 | | | | | |"]) + "\n"
+        return "\n".join(lines + ["| (no run finished) | 0 | | | | | | | |"]) + "\n"
     for name, case in report["cases"].items():
         lines.append(_row(name, Summary(**case)))
     if len(report["cases"]) > 1:
@@ -54,7 +57,9 @@ def markdown(report: dict[str, Any]) -> str:
         lines += ["", f"Cases completed in all runs: **{report['cases_solved_in_all_runs']} / "
                       f"{len(report['cases'])}**."]
     lines += ["", "Completion: done without 10 consecutive failed attempts. Pick success and action efficiency "
-                  "(ideal / actual actions) are averaged over completed runs."]
+                  "(ideal / actual actions) are averaged over completed runs, as the paper does. Not the paper's: "
+                  "pick success pooled over all runs, and the median share of a scene's objects a run picked "
+                  "(removal tasks)."]
     return "\n".join(lines) + "\n"
 
 
