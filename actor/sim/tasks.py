@@ -1,7 +1,8 @@
 """The paper's three tasks as small declarative definitions, plus the scene builders and measurements.
 
-clutter     N objects of `sim.object_set` dropped at random; a picked object is removed; done when no
-            object is left in the workspace. Progress: share of the initial clutter footprint cleared.
+clutter     N objects of `sim.object_set` dropped at random (again, where one lands outside the workspace);
+            a picked object is removed; done when no object is left in the workspace. Progress: share of
+            the initial clutter footprint cleared.
 arrangement a test-case file (VPG's format) placed as written; otherwise like clutter.
 stacking    `sim.num_stacking_cubes` 5 cm cubes placed flat at random, apart from each other; a picked cube stays in the hand until
             placed; done when the ground-truth stack reaches `task.goal_stack_height`. Progress: stack
@@ -102,7 +103,7 @@ def build_scene(scene: Scene, td: TaskDef, specs: list[ObjectSpec], rng: np.rand
 
     Dropped objects that bounced or rolled out of the workspace are dropped again at a new place drawn from
     rng (up to REDROP_ROUNDS times), so an episode starts with its objects where the camera and the arm
-    reach them (VPG restarts such a scene; a stray left near the table edge fell off at the first push).
+    reach them (a stray left near the table edge fell off at the first push and ended the episode).
     """
     spawned: dict[int, ObjectSpec] = {}
     for spec in specs:
