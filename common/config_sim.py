@@ -26,6 +26,11 @@ class SimConfig:
     num_objects: int = 10  # clutter: objects dropped per episode (paper: 10 training, 30 testing)
     num_stacking_cubes: int = 10  # stacking: cubes dropped per episode (the paper's 10)
     case_file: str = ""  # arrangement: a test-case file; "" = the seed picks one of the shipped cases
+    # arrangement: each episode moves the whole case rigidly by up to this much (uniform in x and y) and turns
+    # it by up to case_jitter_deg about its centre, drawn from the episode seed. Without it a deterministic
+    # simulator and a greedy policy repeat the very same run for every seed of a case. 0 and 0 = as written.
+    case_jitter_m: float = 0.005
+    case_jitter_deg: float = 3.0
     drop_height_m: float = 0.15  # clutter/stacking: objects are dropped from this height above the table
     settle_steps: int = 240  # physics steps after spawning, so the scene is at rest before the first image
     # --- robot
@@ -67,6 +72,10 @@ class SimConfig:
         require(1 <= self.num_objects <= 60, "sim.num_objects", self.num_objects, "must be 1..60")
         require(1 <= self.num_stacking_cubes <= 20, "sim.num_stacking_cubes", self.num_stacking_cubes,
                 "must be 1..20")
+        require(0.0 <= self.case_jitter_m <= 0.05, "sim.case_jitter_m", self.case_jitter_m,
+                "must be 0..0.05 m (a shift of the whole case; 0 = as written)")
+        require(0.0 <= self.case_jitter_deg <= 30.0, "sim.case_jitter_deg", self.case_jitter_deg,
+                "must be 0..30 degrees (a turn of the whole case; 0 = as written)")
         require(0.0 <= self.drop_height_m <= 0.5, "sim.drop_height_m", self.drop_height_m, "must be 0..0.5 m")
         require(0 <= self.settle_steps <= 5000, "sim.settle_steps", self.settle_steps, "must be 0..5000")
         require(self.robot in ("arm", "gripper"), "sim.robot", self.robot, "must be 'arm' or 'gripper'")

@@ -20,6 +20,7 @@ from romannet.actor.sim.arrangements import (
     coppeliasim_euler_to_quaternion,
     default_cases,
     default_cases_dir,
+    jitter_case,
     load_case,
 )
 from romannet.actor.sim.block_meshes import BLOCK_SHAPES
@@ -174,3 +175,51 @@ def test_relative_mesh_paths_resolve_next_to_the_case_file(tmp_path: Path) -> No
     specs = load_case(path, WS)
     assert specs[0].shape == str((tmp_path / "meshes" / "thing.obj").resolve())
     assert specs[1].shape == "urdf:" + str((tmp_path / "thing.urdf").resolve())
+
+
+def _rotation(spec) -> np.ndarray:
+    return np.array(p.getMatrixFromQuaternion(spec.orientation_xyzw)).reshape(3, 3)
+
+
+def test_jitter_moves_a_case_as_one_rigid_body() -> None:
+    specs = load_case(CASES[0], WS)
+    moved = jitter_case(specs, np.random.default_rng(3), WS, shift_m=0.005, turn_rad=math.radians(3.0))
+    before = np.array([s.position_m for s in specs])
+    after = np.array([s.position_m for s in moved])
+    assert not np.allclose(before, after)  # it did move
+    # Distances between objects (packed stays packed) and heights are kept.
+    for i, j in itertools.combinations(range(len(specs)), 2):
+        assert np.linalg.norm(after[i] - after[j]) == pytest.approx(np.linalg.norm(before[i] - before[j]), abs=1e-9)
+    assert np.allclose(before[:, 2], after[:, 2])
+    # Every object turned by the same angle about world z, at most 3 degrees; the centre moved <= 5 mm per axis.
+    turns = []
+    for a, b in zip(specs, moved, strict=True):
+        delta = _rotation(b) @ _rotation(a).T
+        assert delta[2, 2] == pytest.approx(1.0, abs=1e-9)  # a rotation about the vertical
+        turns.append(math.atan2(delta[1, 0], delta[0, 0]))
+    assert np.ptp(turns) < 1e-9 and 0 < abs(turns[0]) <= math.radians(3.0)
+    assert np.all(np.abs(after[:, :2].mean(axis=0) - before[:, :2].mean(axis=0)) <= 0.005 + 1e-12)
+    assert [s.shape for s in moved] == [s.shape for s in specs]
+
+
+def test_jitter_is_drawn_from_the_seed_and_zero_keeps_the_case_as_written() -> None:
+    specs = load_case(CASES[1], WS)
+
+    def jittered(seed: int, shift: float = 0.005, turn: float = 0.05) -> np.ndarray:
+        return np.array([s.position_m for s in jitter_case(specs, np.random.default_rng(seed), WS, shift, turn)])
+
+    assert np.array_equal(jittered(7), jittered(7))
+    assert not np.allclose(jittered(7), jittered(8))
+    assert jitter_case(specs, np.random.default_rng(7), WS, 0.0, 0.0) == specs
+    # A shift that would push an object out of the workspace leaves the case as written.
+    edge = [type(specs[0])(specs[0].shape, specs[0].color_rgba, (WS.x_max_m - 1e-4, 0.0, 0.02)), *specs[1:]]
+    branches = set()
+    for seed in range(8):
+        dx = np.random.default_rng(seed).uniform(-1.0, 1.0, 2)[0] * 0.01  # the draw jitter_case makes first
+        out = jitter_case(edge, np.random.default_rng(seed), WS, 0.01, 0.0)
+        if dx > 1e-4:
+            assert out == edge
+        else:
+            assert out != edge and all(WS.x_min_m <= s.position_m[0] <= WS.x_max_m for s in out)
+        branches.add(dx > 1e-4)
+    assert branches == {True, False}

@@ -8,6 +8,7 @@ import numpy as np
 import pybullet as p
 import pytest
 
+from romannet.actor.sim.arrangements import default_cases
 from romannet.actor.sim.env import SimEnv
 from romannet.actor.sim.objects import PALETTE_RGBA, ObjectSpec, spawn_object
 from romannet.actor.sim.oracle import oracle_action
@@ -119,3 +120,17 @@ def test_objects_that_land_outside_the_workspace_are_dropped_again():
         assert all(scene.in_workspace(b) for b in scene.objects)
         assert set(specs) == set(scene.objects)  # the map follows the new bodies
         assert all(s.shape == "cube" for s in specs.values())
+
+
+def test_each_seed_of_an_arrangement_places_the_case_a_little_differently():
+    def start_positions(seed: int, **jitter) -> np.ndarray:
+        case = str(default_cases()[2])
+        with SimEnv(task=TaskConfig(kind="arrangement"), sim=SimConfig(case_file=case, settle_steps=120, **jitter)) as env:
+            env.reset(seed)
+            return env.scene.positions()
+
+    a, b = start_positions(100000), start_positions(100001)
+    assert a.shape == b.shape and not np.allclose(a, b, atol=1e-4)  # 30 runs of a case are 30 different runs
+    assert np.abs(a - b).max() < 0.03  # ... of the same arrangement
+    still = dict(case_jitter_m=0.0, case_jitter_deg=0.0)
+    assert np.allclose(start_positions(100000, **still), start_positions(100001, **still), atol=1e-6)

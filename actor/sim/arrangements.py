@@ -18,6 +18,9 @@ One object per line, whitespace separated: `mesh r g b x y z rx ry rz`
   Caveat: CoppeliaSim re-frames imported meshes, so a VPG file's angles applied to our blocks may not
   put a block on the same face as in VPG; position and shape are kept and the scene still settles.
 
+`jitter_case` moves a loaded case rigidly (a small shift and turn of the whole arrangement, drawn from the
+episode's rng), so that the evaluation's runs of one case differ; the objects keep their relative poses.
+
 Blank lines and `#` comments are allowed. Objects outside the workspace (x, y) or below the floor are
 skipped with a warning; a malformed line raises CaseFormatError naming the file and the line number.
 """
@@ -140,3 +143,28 @@ def load_case(path: str | Path, ws: WorkspaceConfig) -> list[ObjectSpec]:
         specs.append(ObjectSpec(mesh, (r, g, b, 1.0), pos, coppeliasim_euler_to_quaternion(rx, ry, rz)))
     return specs
 
+
+
+def jitter_case(specs: list[ObjectSpec], rng: np.random.Generator, ws: WorkspaceConfig, shift_m: float,
+                turn_rad: float) -> list[ObjectSpec]:
+    """The case moved as one rigid body: turned by an angle uniform in [-turn_rad, turn_rad] about the centre
+    of its objects' x, y, then shifted by dx, dy uniform in [-shift_m, shift_m] (one draw for the whole case,
+    so packed objects stay packed). Where that would put an object's centre outside the workspace, the case
+    is returned as written. Draws three numbers from rng even when shift_m and turn_rad are 0.
+    """
+    dx, dy = (float(v) for v in rng.uniform(-1.0, 1.0, 2) * shift_m)
+    turn = float(rng.uniform(-1.0, 1.0) * turn_rad)
+    if not specs or (shift_m == 0.0 and turn_rad == 0.0):
+        return list(specs)
+    centre = np.mean([s.position_m[:2] for s in specs], axis=0)
+    c, s_ = math.cos(turn), math.sin(turn)
+    q_turn = np.array([0.0, 0.0, math.sin(turn / 2), math.cos(turn / 2)])
+    out = []
+    for spec in specs:
+        ox, oy = np.subtract(spec.position_m[:2], centre)
+        x, y = centre[0] + c * ox - s_ * oy + dx, centre[1] + s_ * ox + c * oy + dy
+        if not (ws.x_min_m <= x <= ws.x_max_m and ws.y_min_m <= y <= ws.y_max_m):
+            return list(specs)
+        orn = tuple(float(v) for v in _quat_mul(q_turn, np.asarray(spec.orientation_xyzw)))
+        out.append(ObjectSpec(spec.shape, spec.color_rgba, (float(x), float(y), spec.position_m[2]), orn, spec.scale))
+    return out

@@ -3,7 +3,8 @@
 clutter     N objects of `sim.object_set` dropped at random (again, where one lands outside the workspace);
             a picked object is removed; done when no object is left in the workspace. Progress: share of
             the initial clutter footprint cleared.
-arrangement a test-case file (VPG's format) placed as written; otherwise like clutter.
+arrangement a test-case file (VPG's format) placed as written, the whole case shifted and turned a little per
+            seed (sim.case_jitter_m, sim.case_jitter_deg); otherwise like clutter.
 stacking    `sim.num_stacking_cubes` 5 cm cubes placed flat at random, apart from each other; a picked cube stays in the hand until
             placed; done when the ground-truth stack reaches `task.goal_stack_height`. Progress: stack
             height from the depth heightmap / goal.
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +24,7 @@ import numpy as np
 from romannet.common.config import TaskConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
 
-from .arrangements import default_cases, load_case
+from .arrangements import default_cases, jitter_case, load_case
 from .objects import CUBE_SIZE_M, ObjectSpec, random_object_specs, spawn_object
 from .scene import Scene
 
@@ -73,7 +75,8 @@ def case_path(sim: SimConfig, rng: np.random.Generator) -> Path:
 def object_specs(td: TaskDef, sim: SimConfig, ws: WorkspaceConfig, rng: np.random.Generator) -> list[ObjectSpec]:
     """The episode's objects, drawn from rng (deterministic for a given seed)."""
     if td.kind == "arrangement":
-        return load_case(case_path(sim, rng), ws)
+        return jitter_case(load_case(case_path(sim, rng), ws), rng, ws, sim.case_jitter_m,
+                           math.radians(sim.case_jitter_deg))
     specs = random_object_specs(rng, td.object_set, td.num_objects, ws, drop_height_m=sim.drop_height_m,
                                 margin_m=DROP_MARGIN_M)
     return specs if td.drop else _spread_on_table(specs, rng, ws)
