@@ -144,7 +144,6 @@ def load_case(path: str | Path, ws: WorkspaceConfig) -> list[ObjectSpec]:
     return specs
 
 
-
 def jitter_case(specs: list[ObjectSpec], rng: np.random.Generator, ws: WorkspaceConfig, shift_m: float,
                 turn_rad: float) -> list[ObjectSpec]:
     """The case moved as one rigid body: turned by an angle uniform in [-turn_rad, turn_rad] about the centre
