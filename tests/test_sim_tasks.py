@@ -92,7 +92,7 @@ def test_an_explosion_during_a_primitive_ends_it_at_once():
 
 
 def test_thirty_dropped_blocks_all_start_in_the_workspace():
-    # Seed 100002 (the first of the evaluation's seeds with it): before the re-drop and the cylinder's rolling
+    # Seed 100002, one of the evaluation's seeds: before the re-drop and the cylinder's rolling
     # resistance, 5 of its 30 blocks ended outside the workspace, one of them 16 m under the table.
     with SimEnv(task=TaskConfig(kind="clutter"), sim=SimConfig(object_set="blocks", num_objects=30)) as env:
         env.reset(100002)
