@@ -134,3 +134,19 @@ def test_each_seed_of_an_arrangement_places_the_case_a_little_differently():
     assert np.abs(a - b).max() < 0.03  # ... of the same arrangement
     still = dict(case_jitter_m=0.0, case_jitter_deg=0.0)
     assert np.allclose(start_positions(100000, **still), start_positions(100001, **still), atol=1e-6)
+
+
+def test_oracle_pushes_a_packed_arrangement_apart_first():
+    # Every object of a packed case is crowded except the isolated one: once that is picked the oracle must
+    # push (its push path read the heightmap through a SimEnv method that a refactor had removed).
+    case = str(default_cases()[0])
+    sim = SimConfig(case_file=case, settle_steps=120, case_jitter_m=0.0, case_jitter_deg=0.0, max_steps=4)
+    with SimEnv(task=TaskConfig(kind="arrangement"), sim=sim) as env:
+        env.reset(0)
+        primitives = []
+        for _ in range(3):
+            action = oracle_action(env)
+            primitives.append(action.primitive)
+            if env.step(action).done:
+                break
+        assert "push" in primitives

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pybullet as p
 
-from romannet.common.action import Action, position_to_pixel
+from romannet.common.action import Action, patch_max, position_to_pixel
 
 from .env import SimEnv
 from .scene import wrap_half_pi
@@ -119,7 +119,7 @@ def _push_actions(env: SimEnv, body: int, bodies: list[int]) -> list[Action]:
         if px is None or not (env.ws.x_min_m <= start[0] <= env.ws.x_max_m
                               and env.ws.y_min_m <= start[1] <= env.ws.y_max_m):
             continue
-        if env._patch_max(px[0], px[1], 0.012) < FREE_FLOOR_M:
+        if patch_max(env.obs.depth_hm, px[0], px[1], 0.012, env.ws.resolution_m) < FREE_FLOOR_M:
             pushes.append(Action("push", px[0], px[1], float(angle), 1.0))
     return pushes
 
