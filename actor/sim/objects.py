@@ -35,7 +35,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "BLOCK_SHAPES", "CUBE_SIZE_M", "NOVEL_OBJECT_SCALE", "OBJECT_SETS", "PALETTE_RGBA", "ObjectSpec",
-    "block_mesh_path", "novel_object_paths", "random_object_specs", "spawn_object",
+    "block_mesh_path", "novel_object_paths", "random_object_specs", "random_xy", "spawn_object",
 ]
 
 OBJECT_SETS = ("blocks", "cubes", "novel")
@@ -223,6 +223,13 @@ def random_quaternion(rng: np.random.Generator) -> tuple[float, float, float, fl
             b * math.sin(2 * math.pi * u3), b * math.cos(2 * math.pi * u3))
 
 
+def random_xy(rng: np.random.Generator, ws: WorkspaceConfig, margin_m: float) -> tuple[float, float]:
+    """x then y (metres, world frame) uniform in the workspace shrunk by margin_m on every side."""
+    x = float(rng.uniform(ws.x_min_m + margin_m, ws.x_max_m - margin_m))
+    y = float(rng.uniform(ws.y_min_m + margin_m, ws.y_max_m - margin_m))
+    return x, y
+
+
 def random_object_specs(rng: np.random.Generator, object_set: str, n: int, ws: WorkspaceConfig,
                         drop_height_m: float = 0.15, margin_m: float = 0.05) -> list[ObjectSpec]:
     """n objects of `object_set` above the workspace, to be dropped one after another.
@@ -248,8 +255,7 @@ def random_object_specs(rng: np.random.Generator, object_set: str, n: int, ws: W
             shape = "cube"
         else:
             shape, scale = "urdf:" + novel[int(rng.integers(len(novel)))], NOVEL_OBJECT_SCALE
-        x = float(rng.uniform(ws.x_min_m + margin_m, ws.x_max_m - margin_m))
-        y = float(rng.uniform(ws.y_min_m + margin_m, ws.y_max_m - margin_m))
+        x, y = random_xy(rng, ws, margin_m)
         if object_set == "cubes":
             yaw = float(rng.uniform(0.0, 2 * math.pi))
             quat = (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))

@@ -25,7 +25,7 @@ from romannet.common.config import TaskConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
 
 from .arrangements import default_cases, jitter_case, load_case
-from .objects import CUBE_SIZE_M, ObjectSpec, random_object_specs, spawn_object
+from .objects import CUBE_SIZE_M, ObjectSpec, random_object_specs, random_xy, spawn_object
 from .scene import Scene
 
 log = logging.getLogger(__name__)
@@ -93,15 +93,14 @@ def _spread_on_table(specs: list[ObjectSpec], rng: np.random.Generator, ws: Work
         for _ in range(SPREAD_TRIES):
             if all(np.linalg.norm(xy - q) >= SPREAD_MIN_DISTANCE_M for q in placed):
                 break
-            xy = np.array([rng.uniform(ws.x_min_m + margin_m, ws.x_max_m - margin_m),
-                           rng.uniform(ws.y_min_m + margin_m, ws.y_max_m - margin_m)])
+            xy = np.array(random_xy(rng, ws, margin_m))
         placed.append(xy)
         z = ws.z_min_m + CUBE_SIZE_M * spec.scale / 2.0 + 0.001
         out.append(dataclasses.replace(spec, position_m=(float(xy[0]), float(xy[1]), z)))
     return out
 
 
-def build_scene(scene: Scene, td: TaskDef, specs: list[ObjectSpec], rng: np.random.Generator | None = None) -> None:
+def build_scene(scene: Scene, td: TaskDef, specs: list[ObjectSpec], rng: np.random.Generator) -> None:
     """Spawn the objects into an emptied scene (dropping them one by one if the task says so) and settle.
 
     Dropped objects that bounced or rolled out of the workspace are dropped again at a new place drawn from
@@ -116,7 +115,7 @@ def build_scene(scene: Scene, td: TaskDef, specs: list[ObjectSpec], rng: np.rand
         if td.drop:
             scene.step(DROP_STEPS)
     scene.settle(scene.sim.settle_steps)
-    if td.drop and rng is not None:
+    if td.drop:
         redrop_strays(scene, spawned, rng)
 
 
@@ -137,8 +136,7 @@ def redrop_strays(scene: Scene, spawned: dict[int, ObjectSpec], rng: np.random.G
         for body in strays:
             spec = spawned.pop(body)
             scene.discard_object(body)
-            x = float(rng.uniform(ws.x_min_m + DROP_MARGIN_M, ws.x_max_m - DROP_MARGIN_M))
-            y = float(rng.uniform(ws.y_min_m + DROP_MARGIN_M, ws.y_max_m - DROP_MARGIN_M))
+            x, y = random_xy(rng, ws, DROP_MARGIN_M)
             spec = dataclasses.replace(spec, position_m=(x, y, ws.z_min_m + scene.sim.drop_height_m))
             new = spawn_object(scene.client, spec)
             scene.add_object(new)
