@@ -10,11 +10,13 @@ import dataclasses
 import math
 
 import numpy as np
+import pybullet as p
 import pytest
 
 from romannet.actor.sim.env import SimEnv
 from romannet.actor.sim.objects import CUBE_SIZE_M, ObjectSpec, spawn_object
 from romannet.actor.sim.oracle import oracle_action
+from romannet.actor.sim.robot import FINGER_OPEN_M, YAW_MARGIN_RAD, hand_yaw, hand_yaw_from
 from romannet.common.action import Action, position_to_pixel
 from romannet.common.config import TaskConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
@@ -104,7 +106,85 @@ def test_push_moves_the_object_it_touches(env):
     result = env.step(Action("push", row, col, 0.0, 1.0))
     moved = env.scene.pose(env.scene.objects[0])[0] - start
     assert result.success, result.detail
-    assert moved[0] > 0.02 and abs(moved[1]) < 0.02
+    # The fingers touch the cube after 3.5 of the 10 cm: it goes at least the remaining 6.5 cm. (A push at
+    # closing angle 0 once turned the wrist half round mid-move and stopped short: the cube only moved when
+    # the arm dragged it on its way home.)
+    assert moved[0] > 0.06 and abs(moved[1]) < 0.02
+
+
+def test_sim_config_names_the_finger_speed_limit():
+    with pytest.raises(ConfigError, match="sim.finger_speed_mps"):
+        SimConfig(finger_speed_mps=0.0)
+
+
+def test_fingers_close_no_faster_than_their_speed_limit(env):
+    """Unlimited, the position-controlled fingers closed at 0.96 m/s and threw what they hit edge-on."""
+    _scene_with_cubes(env, [])
+    arm, client, limit = env.arm, env.scene.client, env.sim.finger_speed_mps
+    arm.set_fingers(closed=True)
+    speeds, steps = [], 0
+    while arm.finger_gap_m() > 0.001 and steps < 400:
+        p.stepSimulation(physicsClientId=client)
+        speeds += [abs(p.getJointState(arm.body_id, j, physicsClientId=client)[1]) for j in arm.finger_joints]
+        steps += 1
+    stroke_s = FINGER_OPEN_M / limit
+    assert max(speeds) <= limit * 1.05
+    assert 0.9 * stroke_s <= steps * env.sim.time_step_s <= 1.5 * stroke_s
+
+
+@pytest.mark.parametrize(("yaw_now", "angle", "expected"), [
+    (math.pi / 2 + 1e-4, 0.0, math.pi / 2),  # standing just past +pi/2: stay there, not a half turn
+    (-math.pi / 2 + 1e-4, 0.0, -math.pi / 2),
+    (0.0, math.pi / 2, 0.0),
+    (1.2, 0.0, math.pi / 2),
+    (-1.2, math.pi, -math.pi / 2),
+])
+def test_hand_yaw_from_takes_the_short_way_round(yaw_now, angle, expected):
+    assert hand_yaw_from(yaw_now, angle) == pytest.approx(expected)
+
+
+def test_hand_yaw_from_grasps_along_the_asked_axis_within_the_wrist_band():
+    for yaw_now in np.linspace(-math.pi / 2 - 0.3, math.pi / 2 + 0.3, 13):
+        for angle in np.linspace(-math.pi, math.pi, 33):
+            yaw = hand_yaw_from(float(yaw_now), float(angle))
+            assert abs(yaw) <= math.pi / 2 + YAW_MARGIN_RAD + 1e-9
+            others = [yaw + k * math.pi for k in (-1, 1) if abs(yaw + k * math.pi) <= math.pi / 2 + YAW_MARGIN_RAD]
+            assert all(abs(yaw - yaw_now) <= abs(o - yaw_now) + 1e-9 for o in others)  # the shorter turn
+            assert math.sin(yaw - hand_yaw(float(angle))) == pytest.approx(0.0, abs=1e-9)  # same axis
+
+
+def test_a_finger_landing_on_a_cube_does_not_throw_it(env):
+    """A pick 4 cm beside a cube puts one finger on its top. Pressed at full arm force the cube squirted out
+    from under it, 30 cm at 1.7 m/s; the guarded descent stops on it instead."""
+    _scene_with_cubes(env, [(0.5, 0.0, 0.025, 0.0)])
+    cube, client = env.scene.objects[0], env.scene.client
+    fastest = [0.0]
+    step = p.stepSimulation
+
+    def watched_step(**kwargs):
+        step(**kwargs)
+        fastest[0] = max(fastest[0], float(np.linalg.norm(p.getBaseVelocity(cube, physicsClientId=client)[0])))
+
+    row, col = position_to_pixel(0.5, 0.04, WS)
+    p.stepSimulation = watched_step
+    try:
+        result = env.step(Action("pick", row, col, math.pi / 2, 1.0))
+    finally:
+        p.stepSimulation = step
+    moved = env.scene.pose(cube)[0] - np.array([0.5, 0.0, 0.025])
+    assert not result.success and result.detail == "nothing_grasped"
+    assert fastest[0] < 0.3 and np.linalg.norm(moved[:2]) < 0.06, (fastest[0], moved)
+
+
+def test_the_stacking_oracle_keeps_the_hand_off_the_stack(env):
+    """The hand spans 21 cm along the closing axis: a cube beside a two-cube stack is grasped across the
+    line to the stack (along it, the hand landed on the stack and the pick failed: measured)."""
+    _scene_with_cubes(env, [(0.5, 0.0, 0.025, 0.0), (0.5, 0.0, 0.075, 0.0), (0.59, 0.0, 0.025, 0.0)])
+    pick = oracle_action(env)
+    assert pick.primitive == "pick" and abs(math.cos(pick.angle_rad)) < 0.1
+    result = env.step(pick)
+    assert result.success, result.detail
+    assert env.stack_height_gt() == 2
 
 
 def test_unreachable_and_refused_actions_fail_with_a_reason(env):

@@ -42,6 +42,13 @@ log = logging.getLogger(__name__)
 PUSH_PATCH_RADIUS_M = 0.012  # the closed fingers' footprint: the push starts above the highest point in it
 PUSH_CLEARANCE_M = 0.005  # fingertips this far above that point
 PUSH_MIN_HEIGHT_M = 0.01  # ... and never lower than this above the table (objects are >= 2.5 cm tall)
+# The open fingers reach 4 cm (plus their width) either side of a pick's pixel: the descent slows down above
+# the highest point within this radius, not only above the pixel, so a finger landing on a neighbouring
+# object meets it slowly (at full speed it threw the object: measured).
+PICK_REACH_RADIUS_M = 0.05
+# ... and the hand, 21 cm long along the closing axis, has its underside 4.6 cm above the fingertips.
+HAND_REACH_RADIUS_M = 0.11
+HAND_ABOVE_TIPS_M = 0.045
 PLACE_PATCH_RADIUS_M = 0.015  # the held object's footprint, roughly: it is lowered onto the highest point
 
 
@@ -142,7 +149,12 @@ class SimEnv:
                          PUSH_MIN_HEIGHT_M)
             return self.prims.push(x, y, z_push + self.ws.z_min_m, action.angle_rad)
         if action.primitive == "pick":
-            return self.prims.pick(x, y, z, action.angle_rad, remove_held=self.task_def.remove_picked)
+            hm, res = self.obs.depth_hm, self.ws.resolution_m
+            z_reach = max(patch_max(hm, action.row, action.col, PICK_REACH_RADIUS_M, res),
+                          patch_max(hm, action.row, action.col, HAND_REACH_RADIUS_M, res) - HAND_ABOVE_TIPS_M
+                          ) + self.ws.z_min_m
+            return self.prims.pick(x, y, z, action.angle_rad, remove_held=self.task_def.remove_picked,
+                                   z_contact_m=z_reach)
         if self.prims.held_body() != self.held_body:  # the object slipped out on the way
             return PrimitiveResult(False, "dropped", 0)
         z_place = patch_max(self.obs.depth_hm, action.row, action.col, PLACE_PATCH_RADIUS_M,

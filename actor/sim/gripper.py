@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ import pybullet_data
 
 from romannet.common.config_sim import SimConfig
 
-from .robot import FINGER_OPEN_M, REACHED_TOL_M, SETTLE_STEPS, YAW_SPEED_RADPS, Hand, hand_yaw
+from .robot import FINGER_OPEN_M, REACHED_TOL_M, SETTLE_STEPS, YAW_SPEED_RADPS, Hand, hand_yaw_from
 from .scene import StepBudget
 
 log = logging.getLogger(__name__)
@@ -86,12 +87,15 @@ class FloatingGripper(Hand):
         self.set_fingers(closed=False)
 
     def move_tips(self, target_m: np.ndarray, closing_angle_rad: float, budget: StepBudget,
-                  speed_mps: float | None = None, tol_m: float = REACHED_TOL_M) -> float:
-        """Straight line to target_m (fingertips), top-down; returns the remaining distance (m)."""
+                  speed_mps: float | None = None, tol_m: float = REACHED_TOL_M,
+                  stop: Callable[[], bool] | None = None) -> float:
+        """Straight line to target_m (fingertips), top-down; returns the remaining distance (m). stop: a
+        guard asked after every step; True holds the hand where it is and returns."""
         target = np.asarray(target_m, dtype=np.float64)
         speed = speed_mps or self.sim.max_speed_mps
         start = self.tip_position()
-        yaw0, yaw1 = self.current_hand_yaw(), hand_yaw(closing_angle_rad)
+        yaw0 = self.current_hand_yaw()
+        yaw1 = hand_yaw_from(yaw0, closing_angle_rad)
         dt = self.sim.time_step_s
         n = max(1, math.ceil(np.linalg.norm(target - start) / (speed * dt)),
                 math.ceil(abs(yaw1 - yaw0) / (YAW_SPEED_RADPS * dt)))
@@ -100,6 +104,9 @@ class FloatingGripper(Hand):
             self._command(start + (target - start) * s, yaw0 + (yaw1 - yaw0) * s)
             if not budget.step():
                 break
+            if stop is not None and stop():
+                self._command(self.tip_position(), self.current_hand_yaw())
+                return float(np.linalg.norm(self.tip_position() - target))
         for _ in range(SETTLE_STEPS):
             err = float(np.linalg.norm(self.tip_position() - target))
             if err < tol_m or not budget.step():

@@ -159,6 +159,13 @@ def stacking_action(env: SimEnv) -> Action:
     free = free or [b for b in cubes if b != base] or cubes
     body = max(free, key=lambda b: _nearest_gap(env, b, cubes)[0])
     _, angle, _, _ = _footprint(env, body)
+    # A cube is grasped across either pair of faces. The hand is 21 cm long along the closing axis and its
+    # underside 4.6 cm above the fingertips: the closing axis goes across the line to the stack, else the
+    # hand lands on the stack. After a failure, the other pair.
+    to_base = scene.pose(base)[0][:2] - scene.pose(body)[0][:2]
+    angles = sorted((angle, angle + math.pi / 2),
+                    key=lambda a: abs(math.cos(a) * to_base[0] + math.sin(a) * to_base[1]))
+    angle = angles[env.consecutive_failures % 2]
     return _action(env, "pick", scene.pose(body)[0][:2], wrap_half_pi(angle))
 
 

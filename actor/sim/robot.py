@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,7 @@ IK_ITERATIONS = 6
 IK_TOL_M = 5e-4  # IK residual at which the twin stops refining
 IK_FAIL_M = 0.01  # a residual above this means the pose is out of the arm's reach
 IK_WAYPOINT_M = 0.02  # spacing of the IK-solved points along a straight move
+YAW_MARGIN_RAD = 0.3  # a hand yaw may pass +-pi/2 by this much (joint 7 stays 0.2 rad inside its limits)
 POSITION_GAIN = 0.3  # stiffer than PyBullet's 0.1: the fingertips settle within ~3 mm under gravity
 
 
@@ -56,6 +58,19 @@ def hand_yaw(closing_angle_rad: float) -> float:
     (sin psi, -cos psi), i.e. along closing angle psi + pi/2 (or psi - pi/2: the same axis).
     """
     return wrap_half_pi(closing_angle_rad - math.pi / 2.0)
+
+
+def hand_yaw_from(yaw_now_rad: float, closing_angle_rad: float) -> float:
+    """The hand yaw for closing_angle_rad that is the shortest turn from yaw_now_rad (the hand's yaw as it
+    is, not folded), among the two half-turn-equivalent yaws within +-(pi/2 + YAW_MARGIN_RAD).
+
+    Folding both ends into (-pi/2, pi/2] is not enough: a hand standing at pi/2 + 1e-4 reads -pi/2 + 1e-4
+    folded, and a move to closing angle 0 (yaw pi/2) then turned the wrist half round, through poses the
+    IK could not reach mid-move (a push at angle 0 stopped short and never pushed: measured).
+    """
+    base = hand_yaw(closing_angle_rad)
+    candidates = [c for c in (base - math.pi, base, base + math.pi) if abs(c) <= math.pi / 2.0 + YAW_MARGIN_RAD]
+    return min(candidates, key=lambda c: abs(c - yaw_now_rad))
 
 
 class Hand:
@@ -92,9 +107,10 @@ class Hand:
         return np.array(pos) - np.array([0.0, 0.0, self.tip_offset_m])
 
     def current_hand_yaw(self) -> float:
+        """The hand's yaw as it stands (rad, (-pi, pi], not folded: see hand_yaw_from)."""
         orn = p.getLinkState(self.body_id, self.grasp_link, computeForwardKinematics=1,
                              physicsClientId=self.client)[5]
-        return wrap_half_pi(p.getEulerFromQuaternion(orn)[2])
+        return float(p.getEulerFromQuaternion(orn)[2])
 
     def finger_gap_m(self) -> float:
         """Distance between the finger pads (m): 0.08 fully open, ~0 closed on nothing."""
@@ -107,15 +123,18 @@ class Hand:
                    for f in self.finger_joints)
 
     def set_fingers(self, closed: bool) -> None:
-        """Command both fingers (position control, force-limited so a grasp squeezes instead of crushing)."""
+        """Command both fingers: position control, force-limited so a grasp squeezes instead of crushing,
+        speed-limited so a finger landing on an object's edge pushes it instead of throwing it."""
         target = 0.0 if closed else FINGER_OPEN_M
-        p.setJointMotorControlArray(self.body_id, self.finger_joints, p.POSITION_CONTROL,
-                                    targetPositions=[target, target],
-                                    forces=[self.sim.finger_force_n] * 2, physicsClientId=self.client)
+        for joint in self.finger_joints:  # (setJointMotorControlArray takes no speed limit)
+            p.setJointMotorControl2(self.body_id, joint, p.POSITION_CONTROL, targetPosition=target,
+                                    force=self.sim.finger_force_n, maxVelocity=self.sim.finger_speed_mps,
+                                    physicsClientId=self.client)
 
-    def actuate_fingers(self, closed: bool, budget: StepBudget, max_steps: int = 120) -> None:
-        """Close or open and step until the fingers stop moving (or max_steps / the budget run out)."""
+    def actuate_fingers(self, closed: bool, budget: StepBudget) -> None:
+        """Close or open and step until the fingers stop moving (or a full stroke's time / the budget run out)."""
         self.set_fingers(closed)
+        max_steps = math.ceil(FINGER_OPEN_M / self.sim.finger_speed_mps / self.sim.time_step_s) + 60
         previous = self.finger_gap_m()
         for i in range(max_steps):
             if not budget.step():
@@ -130,7 +149,10 @@ class Hand:
         raise NotImplementedError
 
     def move_tips(self, target_m: np.ndarray, closing_angle_rad: float, budget: StepBudget,
-                  speed_mps: float | None = None, tol_m: float = REACHED_TOL_M) -> float:
+                  speed_mps: float | None = None, tol_m: float = REACHED_TOL_M,
+                  stop: Callable[[], bool] | None = None) -> float:
+        """Straight line to target_m; stop(), asked after every step, ends the move where the hand is (a
+        guarded move). Returns the remaining distance (m) to the target."""
         raise NotImplementedError
 
     def go_home(self, budget: StepBudget) -> bool:
@@ -224,18 +246,21 @@ class PandaArm(Hand):
         return q, err
 
     def move_tips(self, target_m: np.ndarray, closing_angle_rad: float, budget: StepBudget,
-                  speed_mps: float | None = None, tol_m: float = REACHED_TOL_M) -> float:
+                  speed_mps: float | None = None, tol_m: float = REACHED_TOL_M,
+                  stop: Callable[[], bool] | None = None) -> float:
         """Move the fingertips along a straight line to target_m with the gripper top-down.
 
         The line is cut into waypoints (IK_WAYPOINT_M apart) solved by IK, and the joint targets are
         interpolated between them at the commanded speed. Returns the remaining distance (m) to the target
         after the path and a settling phase that stops once within tol_m (or when the budget is spent); an
         IK failure (the target out of reach) returns at once with the IK residual, before the arm moves.
+        stop: a guard asked after every step; when it answers True the arm holds where it is and returns.
         """
         target = np.asarray(target_m, dtype=np.float64)
         speed = speed_mps or self.sim.max_speed_mps
         start = self.tip_position()
-        yaw0, yaw1 = self.current_hand_yaw(), hand_yaw(closing_angle_rad)
+        yaw0 = self.current_hand_yaw()
+        yaw1 = hand_yaw_from(yaw0, closing_angle_rad)
         dt = self.sim.time_step_s
         length = float(np.linalg.norm(target - start))
         n_way = max(1, math.ceil(length / IK_WAYPOINT_M), math.ceil(abs(yaw1 - yaw0) / 0.2))
@@ -253,6 +278,9 @@ class PandaArm(Hand):
             k = min(int(f), n_way - 1)
             self._command_arm(qs[k] + (qs[k + 1] - qs[k]) * (f - k))
             if not budget.step():
+                return float(np.linalg.norm(self.tip_position() - target))
+            if stop is not None and stop():
+                self._command_arm(self.joint_positions())
                 return float(np.linalg.norm(self.tip_position() - target))
         for _ in range(SETTLE_STEPS):
             err = float(np.linalg.norm(self.tip_position() - target))
