@@ -30,10 +30,14 @@ log = logging.getLogger(__name__)
 APPROACH_TOL_M = 0.01  # farther than this from a pose in free space above the scene = unreachable
 DESCENT_SPEED_MPS = 0.25  # the last SLOW_ZONE_M above a contact height: slow, so contacts stay gentle
 SLOW_ZONE_M = 0.04
-# A pick's way down is a guarded move: it stops where objects push the hand up harder than this (a finger
-# landing on an object's top). Pressed on at full arm force, the object squirted out from under the
+# A pick's way down is guarded. Where objects first push the hand up (CONTACT_FORCE_N: a finger landing on an
+# object), it goes on at PRESS_SPEED_MPS, so an object touched on its edge is pushed aside at that speed and
+# the finger slides down past it, and it stops where the push reaches PRESS_LIMIT_N (a finger on an
+# object's flat top). Pressed on at full arm force and speed instead, an object squirted out from under a
 # finger: a cube 30 cm across the table at 1.7 m/s (measured).
-GUARD_FORCE_N = 20.0
+CONTACT_FORCE_N = 5.0
+PRESS_SPEED_MPS = 0.02
+PRESS_LIMIT_N = 25.0
 LIFT_SPEED_MPS = 0.6
 PUSH_SPEED_MPS = 0.25
 PLACE_GAP_M = 0.008  # the held object's bottom stops this far above the pose before the fingers open
@@ -92,19 +96,22 @@ class Primitives:
 
     def _descend(self, x_m: float, y_m: float, z_m: float, z_contact_m: float, angle_rad: float,
                  budget: StepBudget, guarded: bool = False) -> None:
-        """Straight down to z_m: at full speed to SLOW_ZONE_M above z_contact_m, then slowly; guarded: stop
-        early where an object pushes the hand up (GUARD_FORCE_N)."""
-        stop = self._pressed_on if guarded else None
+        """Straight down to z_m: at full speed to SLOW_ZONE_M above z_contact_m, then slowly; guarded: from the first
+        contact that pushes the hand up on, slowly, and only as long as the push stays below PRESS_LIMIT_N."""
+        touched = (lambda: self._pushed_up_n() > CONTACT_FORCE_N) if guarded else None
+        target = np.array([x_m, y_m, z_m])
         z_slow = z_contact_m + SLOW_ZONE_M
         if self.arm.tip_position()[2] > z_slow:
-            self.arm.move_tips(np.array([x_m, y_m, z_slow]), angle_rad, budget, stop=stop)
-            if stop is not None and stop():
-                return
-        self.arm.move_tips(np.array([x_m, y_m, z_m]), angle_rad, budget, DESCENT_SPEED_MPS, stop=stop)
+            self.arm.move_tips(np.array([x_m, y_m, z_slow]), angle_rad, budget, stop=touched)
+        if touched is None or not touched():
+            self.arm.move_tips(target, angle_rad, budget, DESCENT_SPEED_MPS, stop=touched)
+        if touched is not None and touched():
+            self.arm.move_tips(target, angle_rad, budget, PRESS_SPEED_MPS,
+                               stop=lambda: self._pushed_up_n() > PRESS_LIMIT_N)
 
-    def _pressed_on(self) -> bool:
-        """Do objects push the robot up with more than GUARD_FORCE_N (at the last physics step)?"""
-        return upward_force_n(self.scene.client, self.arm.body_id, self.scene.objects) > GUARD_FORCE_N
+    def _pushed_up_n(self) -> float:
+        """How hard objects push the robot up (N, at the last physics step)."""
+        return upward_force_n(self.scene.client, self.arm.body_id, self.scene.objects)
 
     # ------------------------------------------------------------------------------------------ push
     def push(self, x_m: float, y_m: float, z_m: float, angle_rad: float) -> PrimitiveResult:
