@@ -21,7 +21,7 @@ import pybullet_data
 
 from romannet.common.config_sim import SimConfig
 
-from .robot import FINGER_OPEN_M, REACHED_TOL_M, SETTLE_STEPS, YAW_SPEED_RADPS, Hand, hand_yaw_from
+from .robot import FINGER_OPEN_M, REACHED_TOL_M, YAW_SPEED_RADPS, Hand, hand_yaw_from
 from .scene import StepBudget
 
 log = logging.getLogger(__name__)
@@ -104,14 +104,12 @@ class FloatingGripper(Hand):
             self._command(start + (target - start) * s, yaw0 + (yaw1 - yaw0) * s)
             if not budget.step():
                 break
-            if stop is not None and stop():
-                self._command(self.tip_position(), self.current_hand_yaw())
+            if self._guard(stop):
                 return float(np.linalg.norm(self.tip_position() - target))
-        for _ in range(SETTLE_STEPS):
-            err = float(np.linalg.norm(self.tip_position() - target))
-            if err < tol_m or not budget.step():
-                return err
-        return float(np.linalg.norm(self.tip_position() - target))
+        return self._settle_at(target, budget, tol_m, stop)
+
+    def _hold(self) -> None:
+        self._command(self.tip_position(), self.current_hand_yaw())
 
     def go_home(self, budget: StepBudget) -> bool:
         """Up to the home height first (never sweep through the scene), then across to home."""

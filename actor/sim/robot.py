@@ -145,6 +145,27 @@ class Hand:
                     return
                 previous = gap
 
+    def _hold(self) -> None:
+        """Command the pose the hand is in now (a guarded move stops here)."""
+        raise NotImplementedError
+
+    def _guard(self, stop: Callable[[], bool] | None) -> bool:
+        """Ask a guarded move's stop(); when it answers True, hold where the hand is."""
+        if stop is not None and stop():
+            self._hold()
+            return True
+        return False
+
+    def _settle_at(self, target: np.ndarray, budget: StepBudget, tol_m: float,
+                   stop: Callable[[], bool] | None) -> float:
+        """After a move's path: step until the fingertips are within tol_m of target (at most SETTLE_STEPS,
+        the budget and the guard allowing); returns the remaining distance (m)."""
+        for _ in range(SETTLE_STEPS):
+            err = float(np.linalg.norm(self.tip_position() - target))
+            if err < tol_m or not budget.step() or self._guard(stop):
+                break
+        return float(np.linalg.norm(self.tip_position() - target))
+
     def reset(self) -> None:
         raise NotImplementedError
 
@@ -277,16 +298,12 @@ class PandaArm(Hand):
             f = i / n_steps * n_way
             k = min(int(f), n_way - 1)
             self._command_arm(qs[k] + (qs[k + 1] - qs[k]) * (f - k))
-            if not budget.step():
+            if not budget.step() or self._guard(stop):
                 return float(np.linalg.norm(self.tip_position() - target))
-            if stop is not None and stop():
-                self._command_arm(self.joint_positions())
-                return float(np.linalg.norm(self.tip_position() - target))
-        for _ in range(SETTLE_STEPS):
-            err = float(np.linalg.norm(self.tip_position() - target))
-            if err < tol_m or not budget.step():
-                return err
-        return float(np.linalg.norm(self.tip_position() - target))
+        return self._settle_at(target, budget, tol_m, stop)
+
+    def _hold(self) -> None:
+        self._command_arm(self.joint_positions())
 
     def go_home(self, budget: StepBudget) -> bool:
         """Joint-space move to HOME_Q at a bounded joint speed; True when there (within 0.01 rad)."""
