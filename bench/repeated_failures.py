@@ -13,10 +13,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
 from romannet.common.episode_file import EpisodeFileError, episode_paths, read_episode
+
+
+def episode_index(path: Path) -> int:
+    """The number in an episode file's name (ep000012.mcap -> 12); -1 for a name without one."""
+    digits = re.search(r"(\d+)$", path.stem)
+    return int(digits.group(1)) if digits else -1
+
+
+def split_phases(files: list[Path], split: int) -> dict[str, list[Path]]:
+    """{phase name: files}: one phase "all" if split <= 0, else episodes before `split` and from it on."""
+    if split <= 0:
+        return {"all": files}
+    return {f"episodes < {split}": [f for f in files if episode_index(f) < split],
+            f"episodes >= {split}": [f for f in files if episode_index(f) >= split]}
 
 
 def _steps(path: Path) -> list[dict]:
@@ -59,14 +74,10 @@ def main(argv: list[str] | None = None) -> int:
     root = Path(args.run_dir)
     try:
         files = episode_paths([root / "episodes" if (root / "episodes").is_dir() else root])
+        out = {name: phase_counts(group) for name, group in split_phases(files, args.split).items()}
     except EpisodeFileError as err:
         print(err, file=sys.stderr)
         return 2
-    index = {f: int(f.stem.lstrip("ep") or 0) for f in files}
-    phases = {"all": files} if args.split <= 0 else {
-        f"episodes < {args.split}": [f for f in files if index[f] < args.split],
-        f"episodes >= {args.split}": [f for f in files if index[f] >= args.split]}
-    out = {name: phase_counts(group) for name, group in phases.items()}
     print(json.dumps(out, indent=2) if args.json else "\n".join(f"{k}: {v}" for k, v in out.items()))
     return 0
 

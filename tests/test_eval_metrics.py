@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -208,3 +209,92 @@ def test_report_table_shows_the_papers_metrics_and_the_pooled_ones():
     assert "| c | 2 | 50.0 % | 100.0 % | 100.0 % | – | – | 7.0 |" in markdown(report)
     stacking = build_report([run("p1 L1", ideal=2)], {**header, "task": "stacking"})
     assert stacking["overall"]["median_share_picked"] is None
+
+
+def _cube_heightmap(centre_rc: tuple[float, float], yaw_deg: float, side_px: int = 25) -> np.ndarray:
+    """A 224 x 224 heightmap with one 5 cm-high square of `side_px` pixels, turned by yaw_deg."""
+    depth = np.zeros((224, 224), np.float32)
+    box = cv2.boxPoints(((centre_rc[1], centre_rc[0]), (side_px, side_px), yaw_deg))
+    cv2.fillPoly(depth, [np.round(box).astype(np.int32)], 0.05)
+    return depth
+
+
+def test_pick_offset_measures_along_and_across_the_closing_axis():
+    from romannet.bench.pick_offsets import pick_offset
+
+    depth = _cube_heightmap((100, 120), 0.0)
+    centre = pick_offset(depth, 100, 120, 0.0, 0.002)
+    assert centre["on_object"] and abs(centre["along_m"]) < 0.0015 and abs(centre["across_m"]) < 0.0015
+    assert centre["face_angle_deg"] < 1.0 and 20 < centre["area_cm2"] < 30
+    # 10 px to the right of the centre (+col) with the closing axis along +col: 2 cm along, nothing across;
+    # the same pixel with the closing axis turned 90 degrees: 2 cm across, nothing along.
+    right = pick_offset(depth, 100, 130, 0.0, 0.002)
+    assert right["along_m"] == pytest.approx(0.02, abs=0.0015) and abs(right["across_m"]) < 0.0015
+    turned = pick_offset(depth, 100, 130, math.pi / 2, 0.002)
+    assert abs(turned["along_m"]) < 0.0015 and abs(turned["across_m"]) == pytest.approx(0.02, abs=0.0015)
+    # An angle between the closing axis and the faces folds into 0-45 degrees, whichever face pair.
+    assert pick_offset(depth, 100, 120, math.radians(30), 0.002)["face_angle_deg"] == pytest.approx(30, abs=1)
+    assert pick_offset(depth, 100, 120, math.radians(120), 0.002)["face_angle_deg"] == pytest.approx(30, abs=1)
+    assert pick_offset(_cube_heightmap((100, 120), 20.0), 100, 120, math.radians(65), 0.002)[
+        "face_angle_deg"] == pytest.approx(45, abs=1.5)
+
+
+def test_pick_offset_beside_an_object_and_far_from_any():
+    from romannet.bench.pick_offsets import MAX_GAP_PX, pick_offset
+
+    depth = _cube_heightmap((100, 120), 0.0)
+    beside = pick_offset(depth, 100, 120 + 12 + 4, 0.0, 0.002)  # 4 px off the cube's right face
+    assert not beside["on_object"] and beside["along_m"] == pytest.approx(0.032, abs=0.0015)
+    assert pick_offset(depth, 100, 120 + 12 + MAX_GAP_PX + 3, 0.0, 0.002) is None
+    assert pick_offset(np.zeros((224, 224), np.float32), 5, 5, 0.0, 0.002) is None
+    with pytest.raises(ValueError, match="outside the heightmap"):
+        pick_offset(depth, 224, 0, 0.0, 0.002)
+
+
+def test_pick_offset_summary_splits_greedy_explored_and_leaves_stacks_out_of_the_medians():
+    from romannet.bench.pick_offsets import summarize
+
+    def pick(explored, ok, along, area=25.0, angle=5.0):
+        return {"explored": explored, "success": ok, "on_object": True, "along_m": along, "across_m": 0.0,
+                "face_angle_deg": angle, "area_cm2": area}
+
+    picks = [pick(False, False, 0.022), pick(False, False, -0.024), pick(False, True, 0.004, angle=35.0),
+             pick(True, True, 0.002), pick(False, False, 0.0, area=50.0),  # on a two-cube blob
+             {"explored": False, "success": False, "along_m": None}]  # on the empty table
+    out = summarize(picks, max_area_cm2=35.0)
+    assert (out["picks"], out["succeeded"], out["near_an_object"], out["single_object"]) == (6, 2, 5, 4)
+    greedy, explored = out["greedy"], out["explored"]
+    assert (greedy["picks"], greedy["succeeded"], greedy["within_1cm_along"]) == (3, 1, 1)
+    assert greedy["median_abs_along_cm_failed"] == 2.3 and greedy["median_abs_along_cm_succeeded"] == 0.4
+    assert greedy["by_face_angle"]["0-10"] == {"picks": 2, "succeeded": 0}
+    assert greedy["by_face_angle"]["30-45"] == {"picks": 1, "succeeded": 1}
+    assert (explored["picks"], explored["succeeded"], explored["median_abs_along_cm_failed"]) == (1, 1, None)
+
+
+def test_pick_offsets_reads_a_run_from_its_recorded_transitions(tmp_path):
+    """End to end on episode files written by the actor's recorder: every pick found, measured against the
+    block under it (the scripted successful picks sit on a block, the failed ones far from any)."""
+    from _episodes import record_episode
+
+    from romannet.bench.pick_offsets import episode_picks, main
+
+    runs = tmp_path / "run" / "episodes" / "a0"
+    runs.mkdir(parents=True)
+    record_episode(runs / "ep000000.mcap", steps=6)
+    picks = episode_picks(runs / "ep000000.mcap", min_height_m=0.02)
+    assert [p["success"] for p in picks] == [True, False, True, False]
+    on_block = [p for p in picks if p["success"]]
+    assert all(p["on_object"] and abs(p["along_m"]) < 0.014 and p["area_cm2"] > 0 for p in on_block)
+    assert all(p["along_m"] is None for p in picks if not p["success"])
+    assert main([str(tmp_path / "run"), "--json"]) == 0
+    (tmp_path / "junk.mcap").write_bytes(b"not an episode")
+    assert main([str(tmp_path / "junk.mcap")]) == 2
+
+
+def test_phases_split_runs_by_the_number_in_the_episode_file_name(tmp_path):
+    from romannet.bench.repeated_failures import episode_index, split_phases
+
+    files = [tmp_path / n for n in ("ep000003.mcap", "ep000020.mcap", "ep000100.mcap", "notes.mcap")]
+    assert [episode_index(f) for f in files] == [3, 20, 100, -1]
+    assert split_phases(files, 0) == {"all": files}
+    assert split_phases(files, 20) == {"episodes < 20": [files[0], files[3]], "episodes >= 20": files[1:3]}

@@ -1,0 +1,159 @@
+"""Where a run's picks land on the objects: offset from the object's centre along and across the closing axis.
+
+    python -m romannet.bench.pick_offsets runs/stack-h4 --split 20 --json
+
+A parallel-jaw pick of a box-like object (the stacking cubes, the toy blocks) succeeds when the fingers
+straddle it: the pick pixel must be near the object's centre ALONG the finger-closing axis (a 5 cm cube in
+the 8 cm hand leaves 1.5 cm on each side), while ACROSS it the finger pads tolerate more. This reads the
+recorded episodes (each `/transition`: the action and the depth heightmap it acted on), finds the object under (or within
+MAX_GAP_PX of) every pick pixel as the connected blob of heightmap pixels above `--min-height`, fits its
+minimum-area rectangle, and reports per training phase and for greedy and explored picks apart: how many
+picks hit an object, how many succeeded, and the median |offset| along and across the closing axis and the
+median angle between the closing axis and the object's faces (0-45 degrees), for successful and failed
+picks. Blobs larger than `--max-area-cm2` (a stack, touching objects) are counted but left out of the
+medians, since their centre is not one object's. Prints one JSON object (or a line per phase).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tomllib
+
+from romannet.common.episode_file import TRANSITION_TOPIC, EpisodeFileError, episode_paths, read_episode
+from romannet.common.errors import DecodeError
+from romannet.common.wire import decode_transition
+
+from .repeated_failures import split_phases
+
+MAX_GAP_PX = 8  # a pick pixel this close to an object (but off it) is still measured against that object
+ANGLE_BINS_DEG = ((0, 10), (10, 20), (20, 30), (30, 45.01))
+
+
+def pick_offset(depth_hm: np.ndarray, row: int, col: int, angle_rad: float, resolution_m: float,
+                min_height_m: float = 0.02) -> dict | None:
+    """The pick at (row, col, angle) measured against the object under it; None if no object is near.
+
+    Returns {"on_object": the pixel itself is on it, "along_m"/"across_m": signed offset of the pixel from
+    the object's centre along / across the closing axis (cos, sin) = (d_col, d_row), "face_angle_deg": angle
+    between the closing axis and the nearest face normal of its minimum-area rectangle (0-45),
+    "area_cm2": the blob's footprint}.
+    """
+    depth = np.nan_to_num(np.asarray(depth_hm, dtype=np.float32), nan=0.0)
+    if depth.ndim != 2 or not (0 <= row < depth.shape[0] and 0 <= col < depth.shape[1]):
+        raise ValueError(f"pixel ({row}, {col}) is outside the heightmap of shape {depth.shape}")
+    _, labels = cv2.connectedComponents((depth > min_height_m).astype(np.uint8), connectivity=8)
+    label = int(labels[row, col])
+    on_object = label != 0
+    if not on_object:
+        rows, cols = np.nonzero(labels)
+        if rows.size == 0:
+            return None
+        nearest = int(np.argmin((rows - row) ** 2 + (cols - col) ** 2))
+        if math.hypot(rows[nearest] - row, cols[nearest] - col) > MAX_GAP_PX:
+            return None
+        label = int(labels[rows[nearest], cols[nearest]])
+    rows, cols = np.nonzero(labels == label)
+    (cx, cy), _, rect_deg = cv2.minAreaRect(np.stack([cols, rows], axis=1).astype(np.float32))
+    # minAreaRect works on pixel corners' centres; pixel (row, col) is the point (col, row) here as well.
+    closing = np.array([math.cos(angle_rad), math.sin(angle_rad)])
+    offset = np.array([col - cx, row - cy]) * resolution_m
+    face = (math.degrees(angle_rad) - rect_deg) % 90.0
+    return {"on_object": on_object, "along_m": float(offset @ closing),
+            "across_m": float(offset @ np.array([-closing[1], closing[0]])),
+            "face_angle_deg": float(min(face, 90.0 - face)), "area_cm2": float(rows.size * resolution_m ** 2 * 1e4)}
+
+
+def _median(values: Sequence[float], digits: int) -> float | None:
+    return round(statistics.median(values), digits) if values else None
+
+
+def summarize(picks: Iterable[dict], max_area_cm2: float) -> dict:
+    """Counts and medians over pick records ({explored, success} + pick_offset's fields, or no object)."""
+    picks = list(picks)
+    near = [p for p in picks if p.get("along_m") is not None]
+    single = [p for p in near if p["area_cm2"] <= max_area_cm2]
+    out: dict = {"picks": len(picks), "succeeded": sum(bool(p["success"]) for p in picks),
+                 "near_an_object": len(near), "on_an_object": sum(bool(p["on_object"]) for p in near),
+                 "single_object": len(single)}
+    for kind, explored in (("greedy", False), ("explored", True)):
+        group = [p for p in single if bool(p["explored"]) == explored]
+        row: dict = {"picks": len(group), "succeeded": sum(bool(p["success"]) for p in group)}
+        for outcome, ok in (("succeeded", True), ("failed", False)):
+            sel = [p for p in group if bool(p["success"]) == ok]
+            row[f"median_abs_along_cm_{outcome}"] = _median([abs(p["along_m"]) * 100 for p in sel], 2)
+            row[f"median_abs_across_cm_{outcome}"] = _median([abs(p["across_m"]) * 100 for p in sel], 2)
+            row[f"median_face_angle_deg_{outcome}"] = _median([p["face_angle_deg"] for p in sel], 1)
+        row["within_1cm_along"] = sum(abs(p["along_m"]) < 0.01 for p in group)
+        row["by_face_angle"] = {f"{lo}-{min(hi, 45):g}": {
+            "picks": sum(lo <= p["face_angle_deg"] < hi for p in group),
+            "succeeded": sum(lo <= p["face_angle_deg"] < hi and bool(p["success"]) for p in group)}
+            for lo, hi in ANGLE_BINS_DEG}
+        out[kind] = row
+    return out
+
+
+def episode_picks(path: Path, min_height_m: float) -> list[dict]:
+    """pick_offset of every recorded pick of one episode file, against the heightmap it acted on.
+
+    Reads the `/transition` records (the validated wire messages the actor sent): each holds its action
+    and the depth heightmap before it, so nothing depends on how the other topics interleave.
+    """
+    episode = read_episode(path, topics=[TRANSITION_TOPIC])
+    resolution_m = _resolution_m(path, episode.config_toml)
+    out = []
+    for message in episode.of(TRANSITION_TOPIC):
+        try:
+            t = decode_transition(message.data)
+        except DecodeError as err:
+            raise EpisodeFileError(path, f"a /transition record does not decode: {err}") from err
+        if t.action.primitive != "pick":
+            continue
+        where = pick_offset(t.depth_before, t.action.row, t.action.col, t.action.angle_rad, resolution_m,
+                            min_height_m)
+        out.append({"explored": t.action.explored, "success": t.success, **(where or {"along_m": None})})
+    return out
+
+
+def _resolution_m(path: Path, config_toml: str) -> float:
+    """workspace.resolution_m of the config the actor recorded in the episode file."""
+    try:
+        value = tomllib.loads(config_toml)["workspace"]["resolution_m"]
+    except (tomllib.TOMLDecodeError, KeyError, TypeError) as err:
+        raise EpisodeFileError(path, f"no workspace.resolution_m in its recorded config ({err})") from err
+    if not (isinstance(value, (int, float)) and value > 0):
+        raise EpisodeFileError(path, f"recorded workspace.resolution_m = {value!r} is not a positive number")
+    return float(value)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("run_dir", help="a run directory (its episodes/) or a directory of episode files")
+    p.add_argument("--split", type=int, default=0, help="first episode index of the second phase (0: one phase)")
+    p.add_argument("--min-height", type=float, default=0.02, help="object pixels are higher than this (m)")
+    p.add_argument("--max-area-cm2", type=float, default=35.0,
+                   help="larger blobs (stacks, touching objects) are left out of the medians (default 35)")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    root = Path(args.run_dir)
+    try:
+        files = episode_paths([root / "episodes" if (root / "episodes").is_dir() else root])
+        out = {name: summarize((pick for f in group for pick in episode_picks(f, args.min_height)),
+                               args.max_area_cm2) for name, group in split_phases(files, args.split).items()}
+    except EpisodeFileError as err:
+        print(err, file=sys.stderr)
+        return 2
+    print(json.dumps(out, indent=2) if args.json else "\n".join(f"{k}: {v}" for k, v in out.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
