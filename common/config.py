@@ -93,7 +93,8 @@ class TaskConfig:
     kind: Literal["clutter", "arrangement", "stacking"] = "clutter"
     use_push: bool = True  # tasks without push run PickNet only while not holding
     goal_stack_height: int = 4  # stacking only: number of cubes in the goal stack
-    cube_size_m: float = 0.05  # stacking only: edge of the cubes, for stack-height measurement
+    cube_size_m: float = 0.05  # stacking only: edge of the cubes; the stack height is measured in it, and the
+    # simulator's stacking cubes are this size (VPG's cube block is 5 cm)
 
     def __post_init__(self) -> None:
         require(2 <= self.goal_stack_height <= 5, "task.goal_stack_height", self.goal_stack_height,

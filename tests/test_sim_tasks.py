@@ -17,6 +17,7 @@ from romannet.actor.sim.tasks import redrop_strays
 from romannet.common.action import Action
 from romannet.common.config import TaskConfig
 from romannet.common.config_sim import SimConfig
+from romannet.common.errors import ConfigError
 from romannet.common.interfaces import Env
 
 SMALL = SimConfig(num_objects=2, num_stacking_cubes=2, settle_steps=120, max_steps=6)
@@ -150,3 +151,24 @@ def test_oracle_pushes_a_packed_arrangement_apart_first():
             if env.step(action).done:
                 break
         assert "push" in primitives
+
+
+def test_stacking_cubes_are_the_configured_size_and_the_stack_is_measured_in_it():
+    """task.cube_size_m sizes the simulator's cubes as well as the stack-height measurement: with 4 cm
+    cubes the oracle's stack of two reads 2 from the depth heightmap and from the poses (5 cm cubes
+    measured in 4 cm units would have read 3 for two)."""
+    task = TaskConfig(kind="stacking", cube_size_m=0.04, goal_stack_height=2)
+    with SimEnv(task=task, sim=SMALL) as env:
+        env.reset(5)
+        for body in env.scene.objects:
+            lo, hi = p.getAABB(body, physicsClientId=env.scene.client)
+            assert hi[2] - lo[2] == pytest.approx(0.04, abs=0.002)
+        assert env.stack_height_gt() == 1
+        for _ in range(4):
+            result = env.step(oracle_action(env))
+            if result.done:
+                break
+        assert result.done and result.done_reason == "done", result
+        assert env.stack_height_gt() == 2 and env.stack_height_hm(env.obs.depth_hm) == 2
+    with pytest.raises(ConfigError, match="task.cube_size_m"):
+        SimEnv(task=TaskConfig(kind="stacking", cube_size_m=0.09), sim=SMALL)

@@ -5,7 +5,7 @@ clutter     N objects of `sim.object_set` dropped at random (again, where one la
             the initial clutter footprint cleared.
 arrangement a test-case file (VPG's format) placed as written, the whole case shifted and turned a little per
             seed (sim.case_jitter_m, sim.case_jitter_deg); otherwise like clutter.
-stacking    `sim.num_stacking_cubes` 5 cm cubes placed flat at random, apart from each other; a picked cube stays in the hand until
+stacking    `sim.num_stacking_cubes` cubes of edge `task.cube_size_m` (5 cm by default) placed flat at random, apart from each other; a picked cube stays in the hand until
             placed; done when the ground-truth stack reaches `task.goal_stack_height`. Progress: stack
             height from the depth heightmap / goal.
 Positions in the world (= robot base) frame, metres; table top z = 0.
@@ -23,9 +23,11 @@ import numpy as np
 
 from romannet.common.config import TaskConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
+from romannet.common.configbase import require
 
 from .arrangements import default_cases, jitter_case, load_case
 from .objects import CUBE_SIZE_M, ObjectSpec, random_object_specs, random_xy, spawn_object
+from .robot import FINGER_OPEN_M
 from .scene import Scene
 
 log = logging.getLogger(__name__)
@@ -47,6 +49,7 @@ class TaskDef:
     drop: bool  # True: objects fall one by one from drop_height_m; False: placed as specified
     remove_picked: bool  # clutter removal: a successful pick takes the object out of the scene
     progress: str  # "clutter" (occupied footprint) or "stacking" (stack height / goal)
+    object_scale: float = 1.0  # every drawn object's size times this (stacking: task.cube_size_m / CUBE_SIZE_M)
 
 
 def task_def(task: TaskConfig, sim: SimConfig) -> TaskDef:
@@ -58,7 +61,12 @@ def task_def(task: TaskConfig, sim: SimConfig) -> TaskDef:
     if task.kind == "stacking":
         # Placed flat and apart (not dropped): dropped cubes often land on each other, and an episode
         # that starts with a 2-stack would make the stacking efficiency (ideal 2(h-1) actions) meaningless.
-        return TaskDef("stacking", "cubes", sim.num_stacking_cubes, False, False, "stacking")
+        # The cubes are task.cube_size_m, the edge the stack height is measured in (common.stack), so the
+        # two can never disagree.
+        require(task.cube_size_m < 2 * FINGER_OPEN_M, "task.cube_size_m", task.cube_size_m,
+                f"the simulated hand opens {2 * FINGER_OPEN_M:.2f} m, so it could never pick such a cube")
+        return TaskDef("stacking", "cubes", sim.num_stacking_cubes, False, False, "stacking",
+                       object_scale=task.cube_size_m / CUBE_SIZE_M)
     raise ValueError(f"unknown task kind {task.kind!r}: expected clutter, arrangement or stacking")
 
 
@@ -79,6 +87,8 @@ def object_specs(td: TaskDef, sim: SimConfig, ws: WorkspaceConfig, rng: np.rando
                            math.radians(sim.case_jitter_deg))
     specs = random_object_specs(rng, td.object_set, td.num_objects, ws, drop_height_m=sim.drop_height_m,
                                 margin_m=DROP_MARGIN_M)
+    if td.object_scale != 1.0:
+        specs = [dataclasses.replace(spec, scale=spec.scale * td.object_scale) for spec in specs]
     return specs if td.drop else _spread_on_table(specs, rng, ws)
 
 
