@@ -116,6 +116,10 @@ class ModelConfig:
     channels: int = 32  # GR-ConvNet width after the first 9x9 conv (32 gives ~1.9 M parameters per net)
     residual_blocks: int = 5
     dropout: float = 0.0
+    # Rotation head: 1 = (cos k theta, sin k theta) as GR-ConvNet (k = 1 push, 2 pick/place); 2 = also the
+    # second harmonic (cos 2k theta, sin 2k theta), which stays trainable when two grasps 90 degrees apart are
+    # both right (a cube: the first harmonic's targets cancel there; see common/model.py).
+    rotation_harmonics: int = 1
     # Inference numerics: "auto" picks bf16 where the CPU supports it natively, else fp32.
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     channels_last: bool = True
@@ -125,6 +129,8 @@ class ModelConfig:
         require(4 <= self.channels <= 256, "model.channels", self.channels, "must be 4..256")
         require(0 <= self.residual_blocks <= 20, "model.residual_blocks", self.residual_blocks, "must be 0..20")
         require(0.0 <= self.dropout < 1.0, "model.dropout", self.dropout, "must be in [0, 1)")
+        require(self.rotation_harmonics in (1, 2), "model.rotation_harmonics", self.rotation_harmonics,
+                "must be 1 (cos/sin of the angle) or 2 (also its second harmonic)")
         require(self.num_threads >= 0, "model.num_threads", self.num_threads, "must be >= 0 (0 = torch default)")
 
 

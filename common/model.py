@@ -8,7 +8,16 @@ w are multiples of 4.
 
 Rotation encoding: push is directional, so the net encodes θ as (cos θ, sin θ). Pick and place with an
 antipodal gripper are symmetric under θ → θ+π, so they encode 2θ: (cos 2θ, sin 2θ), and decode to
-θ ∈ (−π/2, π/2].
+θ ∈ (−π/2, π/2]. With k = 1 (push) or 2 (pick/place) the channels are (cos kθ, sin kθ).
+
+With model.rotation_harmonics = 2 the head adds the second harmonic (cos 2kθ, sin 2kθ). Why: the head is
+trained by regression toward the executed angle, and for a cube two grasps 90 degrees apart are both right;
+in the first harmonic their targets are opposite vectors (2θ and 2θ + π), so the regression averages them
+to ~0 and the decoded angle is whatever the bias says (measured: the stacking policies' greedy pick angle
+stayed within a few degrees of one value for every cube, docs/results.md). In the second harmonic both
+grasps have the same target, so it learns the cube's faces; decoding takes θ modulo π/k from it and picks,
+of the two candidates π/k apart, the one the first harmonic prefers (for a cube either is right; for an
+oblong object the first harmonic, which never saw the long-side grasp succeed, tells them apart).
 
 Weights cross processes as a flat {name: tensor} dict (shipped as safetensors by the learner), validated by
 `load_tensors`; nothing here unpickles.
@@ -49,9 +58,10 @@ class ResidualBlock(nn.Module):
 
 
 class GRConvNet(nn.Module):
-    """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2, h, w) as cos, sin)."""
+    """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2 harmonics, h, w): cos, sin, ...)."""
 
-    def __init__(self, channels: int = 32, residual_blocks: int = 5, dropout: float = 0.0, in_channels: int = 4):
+    def __init__(self, channels: int = 32, residual_blocks: int = 5, dropout: float = 0.0, in_channels: int = 4,
+                 rotation_harmonics: int = 1):
         super().__init__()
         c = channels
         self.conv1 = nn.Conv2d(in_channels, c, 9, padding=4)
@@ -69,7 +79,7 @@ class GRConvNet(nn.Module):
         self.conv6 = nn.Conv2d(c, c, 9, padding=4)
         self.dropout = nn.Dropout(p=dropout)
         self.q_head = nn.Conv2d(c, 1, 1)
-        self.rot_head = nn.Conv2d(c, 2, 1)
+        self.rot_head = nn.Conv2d(c, 2 * rotation_harmonics, 1)
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         h, w = x.shape[-2:]
@@ -96,7 +106,8 @@ class RoManNet(nn.Module):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.nets = nn.ModuleDict({
-                p: GRConvNet(cfg.channels, cfg.residual_blocks, cfg.dropout) for p in PRIMITIVES
+                p: GRConvNet(cfg.channels, cfg.residual_blocks, cfg.dropout,
+                             rotation_harmonics=cfg.rotation_harmonics) for p in PRIMITIVES
             })
 
     def forward(self, x: Tensor, primitive: str) -> tuple[Tensor, Tensor]:
@@ -141,18 +152,21 @@ def _check_primitive(primitive: str) -> None:
         raise ValueError(f"primitive {primitive!r} is not one of {PRIMITIVES}")
 
 
-def encode_angle(theta, primitive: str):
-    """Rotation target (cos, sin) for gripper yaw θ (radians; float, ndarray or Tensor).
+def encode_angle(theta, primitive: str, harmonics: int = 1):
+    """Rotation target for gripper yaw θ (radians; float, ndarray or Tensor): a tuple of 2 * harmonics.
 
-    push: (cos θ, sin θ); pick/place: (cos 2θ, sin 2θ), so θ and θ+π give the same target.
+    push: (cos θ, sin θ); pick/place: (cos 2θ, sin 2θ), so θ and θ+π give the same target. harmonics = 2
+    appends (cos 2kθ, sin 2kθ) with k = 1 (push) or 2 (pick/place).
     """
     _check_primitive(primitive)
+    if harmonics not in (1, 2):
+        raise ValueError(f"harmonics = {harmonics!r} must be 1 or 2")
     k = 2.0 if primitive in SYMMETRIC_PRIMITIVES else 1.0
-    if isinstance(theta, Tensor):
-        return torch.cos(k * theta), torch.sin(k * theta)
-    if isinstance(theta, np.ndarray):
-        return np.cos(k * theta), np.sin(k * theta)
-    return math.cos(k * theta), math.sin(k * theta)
+    mod = torch if isinstance(theta, Tensor) else np if isinstance(theta, np.ndarray) else math
+    out: tuple = ()
+    for h in range(1, harmonics + 1):
+        out += (mod.cos(h * k * theta), mod.sin(h * k * theta))
+    return out
 
 
 def decode_angle(cos, sin, primitive: str):
@@ -174,6 +188,30 @@ def decode_angle(cos, sin, primitive: str):
     if a <= -math.pi:
         a += 2 * math.pi
     return a / 2 if symmetric else a
+
+
+def decode_rotation(channels: np.ndarray, primitive: str) -> np.ndarray:
+    """Gripper yaw from a rotation head's output, channels on the LAST axis: 2 (cos kθ, sin kθ) or 4 (plus the
+    second harmonic). Ranges as decode_angle: push (−π, π], pick/place (−π/2, π/2].
+
+    Two harmonics: the second gives θ modulo π/k; of the two candidates π/k apart, the one whose first
+    harmonic points the same way as the first-harmonic channels wins (ties, a zero first harmonic: the
+    candidate from the second harmonic alone).
+    """
+    _check_primitive(primitive)
+    channels = np.asarray(channels)
+    n = channels.shape[-1]
+    if n == 2:
+        return decode_angle(channels[..., 0], channels[..., 1], primitive)
+    if n != 4:
+        raise ValueError(f"a rotation output has 2 or 4 channels (1 or 2 harmonics), got {n}")
+    k = 2.0 if primitive in SYMMETRIC_PRIMITIVES else 1.0
+    fine = np.arctan2(channels[..., 3], channels[..., 2]) / (2 * k)  # θ modulo π/k, in (−π/(2k), π/(2k)]
+    agree = channels[..., 0] * np.cos(k * fine) + channels[..., 1] * np.sin(k * fine)
+    theta = np.where(agree < 0, fine + np.pi / k, fine)
+    period = 2 * np.pi / k  # fold into the primitive's range (−period/2, period/2]
+    theta = np.where(theta > period / 2, theta - period, theta)
+    return theta
 
 
 # ----------------------------------------------------------------------------------------------------------

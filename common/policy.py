@@ -32,7 +32,7 @@ from torch import Tensor
 from .action import Action
 from .config import ExplorationConfig, ModelConfig
 from .exploration import select_action
-from .model import GRConvNet, RoManNet, decode_angle, load_tensors, preprocess
+from .model import GRConvNet, RoManNet, decode_rotation, load_tensors, preprocess
 
 logger = logging.getLogger(__name__)
 
@@ -143,7 +143,7 @@ class _Layer:
 
 
 class FastNet:
-    """Inference-only form of one GRConvNet: (B,4,H,W) fp32 → (B,H,W,3) fp32 = (q, cos, sin) per pixel."""
+    """Inference-only form of one GRConvNet: (B,4,H,W) fp32 → (B,H,W,1+R) fp32 = (q, rotation channels...)."""
 
     def __init__(self, net: GRConvNet, precision: str = "fp32", fused: bool | None = None):
         if net.training:
@@ -165,8 +165,9 @@ class FastNet:
                        _Layer(*_fold(net.deconv2, net.bn5, True), dtype, 2, 1, True, fused)]
             self.conv6 = _Layer(net.conv6.weight, net.conv6.bias, dtype, 1, 4, False, fused)
             heads_w = torch.cat([net.q_head.weight, net.rot_head.weight], 0)[:, :, 0, 0]
-            self.heads_w = heads_w.detach().float().t().contiguous()  # (C, 3)
+            self.heads_w = heads_w.detach().float().t().contiguous()  # (C, 1 + rotation channels)
             self.heads_b = torch.cat([net.q_head.bias, net.rot_head.bias]).detach().float()
+            self.outputs = int(self.heads_b.numel())
 
     def __call__(self, x: Tensor) -> Tensor:
         if self.low_precision:
@@ -182,7 +183,7 @@ class FastNet:
         x = self.conv6(x, relu=False)
         b, c, h, w = x.shape
         rows = x.permute(0, 2, 3, 1).reshape(-1, c).float()  # a view for channels_last
-        return torch.addmm(self.heads_b, rows, self.heads_w).view(b, h, w, 3)
+        return torch.addmm(self.heads_b, rows, self.heads_w).view(b, h, w, self.outputs)
 
 
 class InferenceEngine:
@@ -237,7 +238,7 @@ class InferenceEngine:
             return self.nets[name](x)[0]
 
     def forward(self, x: Tensor, primitives: Sequence[str]) -> dict[str, Tensor]:
-        """{primitive: (h, w, 3) fp32 tensor of (q, cos, sin)} for a (1, 4, h, w) preprocessed input."""
+        """{primitive: (h, w, 1 + R) fp32 tensor of (q, R rotation channels)} for a (1, 4, h, w) preprocessed input."""
         names = tuple(primitives)
         if self._pool is None or len(names) < 2:
             return {p: self._run(p, x) for p in names}
@@ -257,12 +258,12 @@ class InferenceEngine:
 
 
 def _to_maps(outputs: Mapping[str, Tensor]) -> PolicyMaps:
-    """{primitive: (h, w, 3) tensor of (q, cos, sin)} → float32 numpy Q and decoded angle maps."""
+    """{primitive: (h, w, 1 + R) tensor of (q, rotation channels)} → float32 numpy Q and decoded angle maps."""
     q, angle = {}, {}
     for p, out in outputs.items():
         arr = out.numpy()
         q[p] = np.ascontiguousarray(arr[..., 0])
-        angle[p] = decode_angle(arr[..., 1], arr[..., 2], p).astype(np.float32, copy=False)
+        angle[p] = decode_rotation(arr[..., 1:], p).astype(np.float32, copy=False)
     return PolicyMaps(q, angle)
 
 
@@ -277,7 +278,7 @@ def reference_maps(model: RoManNet, color_hm: np.ndarray, depth_hm: np.ndarray,
             outputs = {}
             for p in primitives:
                 q, rot = model.nets[p](x)
-                outputs[p] = torch.stack([q[0], rot[0, 0], rot[0, 1]], dim=-1).float().cpu()
+                outputs[p] = torch.cat([q[0, ..., None], rot[0].permute(1, 2, 0)], dim=-1).float().cpu()
     finally:
         model.train(was_training)
     return _to_maps(outputs)

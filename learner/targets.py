@@ -13,7 +13,8 @@ constant eta*gamma*V on the whole support makes the label at the executed pixel 
 label 0 on the whole support.
 
 Rotation target: on successful actions the rotation head is trained at the executed pixel toward
-encode_angle(theta): (cos theta, sin theta) for push, (cos 2 theta, sin 2 theta) for pick/place.
+encode_angle(theta): (cos theta, sin theta) for push, (cos 2 theta, sin 2 theta) for pick/place, plus the
+second harmonic with model.rotation_harmonics = 2 (common/model.py says why).
 
 Opposite orientation (paper: "for an antipodal gripper, the pick and place motion primitives are symmetrical
 around 0-180 degrees, thus we can pass the gradients for the opposite orientation as well"). VPG's nets
@@ -95,9 +96,10 @@ def q_label(shape: tuple[int, int], row: int, col: int, angle_rad: float, reward
     return reward_map, support
 
 
-def rotation_target(angle_rad: float, primitive: str) -> tuple[float, float]:
-    """The rotation head's (cos, sin) target at the executed pixel: encode_angle (2 theta for pick/place)."""
-    return encode_angle(float(angle_rad), primitive)
+def rotation_target(angle_rad: float, primitive: str, harmonics: int = 1) -> tuple[float, ...]:
+    """The rotation head's target at the executed pixel: encode_angle (2 theta for pick/place), 2 * harmonics
+    values (cos, sin of k theta, then of 2k theta with model.rotation_harmonics = 2)."""
+    return encode_angle(float(angle_rad), primitive, harmonics)
 
 
 def opposite_orientation(angle_rad: float) -> float:

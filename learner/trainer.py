@@ -248,14 +248,15 @@ class Trainer:
         cols = torch.tensor([t.action.col for t in ts], device=self.device)
         ar = torch.arange(len(ts), device=self.device)
         q_exec = q[ar, rows, cols]
-        rot_exec = rot[ar, :, rows, cols]  # (k, 2)
+        rot_exec = rot[ar, :, rows, cols]  # (k, 2 * harmonics)
         y = torch.tensor([targets[i] for i in idx], device=self.device)
         is_w = torch.tensor([items[i][1] for i in idx], device=self.device, dtype=torch.float32)
         q_losses = torch.stack([support_loss(q[k], label[k], support[k], cfg.huber_delta, cfg.loss_reduction)
                                 for k in range(len(ts))])
         train_rot = [cfg.rotation_loss_weight > 0 and (t.success or not cfg.train_rotation_on_success_only)
                      for t in ts]
-        rot_target = torch.tensor([rotation_target(t.action.angle_rad, p) for t in ts], device=self.device)
+        harmonics = self.model.cfg.rotation_harmonics
+        rot_target = torch.tensor([rotation_target(t.action.angle_rad, p, harmonics) for t in ts], device=self.device)
         rot_mask = torch.tensor(train_rot, device=self.device, dtype=torch.float32)
         rot_losses = ((rot_exec - rot_target) ** 2).sum(dim=1) * rot_mask
         item_losses = q_losses + cfg.rotation_loss_weight * rot_losses

@@ -9,13 +9,14 @@ from safetensors.torch import load as safetensors_load
 from safetensors.torch import save as safetensors_save
 
 from romannet.common.config import PRIMITIVES, ModelConfig
-from romannet.common.errors import DecodeError
+from romannet.common.errors import ConfigError, DecodeError
 from romannet.common.model import (
     IMAGENET_MEAN,
     IMAGENET_STD,
     GRConvNet,
     RoManNet,
     decode_angle,
+    decode_rotation,
     encode_angle,
     load_tensors,
     parameter_count,
@@ -193,3 +194,62 @@ def test_mismatched_weights_raise_decode_error(model, case):
         load_tensors(target, bad)
     after = state_dict_to_tensors(target)
     assert all(torch.equal(before[k], after[k]) for k in before)  # nothing half-loaded
+
+
+@pytest.mark.parametrize("primitive", PRIMITIVES)
+def test_two_harmonic_angle_round_trip(primitive):
+    half_range = math.pi if primitive == "push" else math.pi / 2
+    thetas = np.linspace(-half_range, half_range, 201)[1:]
+    channels = np.stack(encode_angle(thetas, primitive, harmonics=2), axis=-1)
+    assert channels.shape == (200, 4)
+    np.testing.assert_allclose(decode_rotation(channels, primitive), thetas, atol=1e-9)
+    # one harmonic through the same entry point is decode_angle
+    one = np.stack(encode_angle(thetas, primitive), axis=-1)
+    np.testing.assert_allclose(decode_rotation(one, primitive), thetas, atol=1e-9)
+    ct = encode_angle(torch.tensor(0.3, dtype=torch.float64), primitive, harmonics=2)
+    assert len(ct) == 4 and float(ct[2]) == pytest.approx(math.cos(0.6 if primitive == "push" else 1.2))
+
+
+def test_second_harmonic_keeps_a_cube_grasp_that_the_first_averages_away():
+    """A cube is grasped alike at theta and theta + 90 degrees. Regression toward both (the mean of their
+    targets) leaves nothing of the first harmonic (2 theta and 2 theta + pi cancel) but all of the second,
+    and the decoded angle is square to the cube's faces again."""
+    for theta in (-1.3, -0.4, 0.0, 0.25, 0.7, 1.5):
+        targets = np.array([encode_angle(theta, "pick", 2), encode_angle(theta + math.pi / 2, "pick", 2)])
+        mean = targets.mean(axis=0)
+        assert np.hypot(mean[0], mean[1]) < 1e-12 and np.hypot(mean[2], mean[3]) == pytest.approx(1.0)
+        decoded = float(decode_rotation(mean, "pick"))
+        # square to the faces: equal to theta modulo 90 degrees
+        assert math.remainder(decoded - theta, math.pi / 2) == pytest.approx(0.0, abs=1e-9)
+    # an oblong object: the first harmonic (successes across its short side only) picks that candidate
+    theta = 0.4
+    short_side = np.array([*encode_angle(theta, "pick", 1), *encode_angle(theta, "pick", 2)[2:]])
+    short_side[:2] *= 0.2  # a weak first harmonic still decides
+    assert float(decode_rotation(short_side, "pick")) == pytest.approx(theta)
+    long_side = short_side.copy()
+    long_side[:2] *= -1
+    assert float(decode_rotation(long_side, "pick")) == pytest.approx(theta - math.pi / 2)
+
+
+def test_two_harmonic_decode_ranges_and_bad_channel_counts():
+    rng = np.random.default_rng(1)
+    out = rng.normal(size=(500, 4)) * 2
+    push, pick = decode_rotation(out, "push"), decode_rotation(out, "pick")
+    assert np.all((push > -math.pi) & (push <= math.pi + 1e-12))
+    assert np.all((pick > -math.pi / 2) & (pick <= math.pi / 2 + 1e-12))
+    with pytest.raises(ValueError, match="2 or 4 channels"):
+        decode_rotation(np.zeros((3, 3)), "pick")
+    with pytest.raises(ValueError, match="harmonics"):
+        encode_angle(0.0, "pick", harmonics=3)
+    with pytest.raises(ConfigError, match="model.rotation_harmonics"):
+        ModelConfig(rotation_harmonics=3)
+
+
+def test_two_harmonic_model_has_a_four_channel_rotation_head():
+    model = RoManNet(ModelConfig(channels=8, residual_blocks=1, rotation_harmonics=2)).eval()
+    with torch.inference_mode():
+        q, rot = model.nets["pick"](torch.randn(1, 4, 32, 32))
+    assert q.shape == (1, 32, 32) and rot.shape == (1, 4, 32, 32)
+    # its weights do not load into a one-harmonic model (a clear error, not a silent reshape)
+    with pytest.raises(DecodeError):
+        load_tensors(RoManNet(ModelConfig(channels=8, residual_blocks=1)), state_dict_to_tensors(model))

@@ -234,3 +234,28 @@ def test_inference_ablation_runs_on_any_cpu():
         assert set(entry) in ({"median_ms", "min_ms"}, {"unsupported"}), (name, entry)
         if "unsupported" in entry:
             assert "bf16" in name and entry["unsupported"], (name, entry)
+
+
+def test_two_harmonic_engine_decodes_the_same_angles_as_the_reference(scenes):
+    """model.rotation_harmonics = 2: the fast path carries the 4 rotation channels through and decodes the
+    same angle maps as the eager reference (and as decode_rotation of the raw head output)."""
+    from romannet.common.model import decode_rotation
+
+    cfg = ModelConfig(channels=8, residual_blocks=1, rotation_harmonics=2, precision="fp32")
+    model = RoManNet(cfg, seed=3).eval()
+    with torch.no_grad():  # a bias on the first harmonic, so the choice between the two candidates matters
+        model.nets["pick"].rot_head.bias.copy_(torch.tensor([0.3, -0.2, 0.0, 0.0]))
+    eng = InferenceEngine(model, cfg)
+    try:
+        fast = eng.infer(*scenes[0], ("push", "pick"))
+        raw = eng.forward(preprocess(*scenes[0]), ("pick",))["pick"].numpy()
+    finally:
+        eng.close()
+    assert raw.shape[-1] == 5
+    ref = reference_maps(model, *scenes[0], ("push", "pick"))
+    for p in ("push", "pick"):
+        np.testing.assert_allclose(fast.q[p], ref.q[p], atol=2e-5)
+        diff = np.abs(np.angle(np.exp(1j * (fast.angle[p] - ref.angle[p]))))  # modulo a full turn
+        assert diff.max() < 1e-3
+    np.testing.assert_allclose(fast.angle["pick"], decode_rotation(raw[..., 1:], "pick"), atol=1e-6)
+    assert np.all(np.abs(fast.angle["pick"]) <= np.pi / 2 + 1e-6)

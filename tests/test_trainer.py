@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import _learner_helpers as H
 import pytest
 import torch
@@ -168,3 +170,26 @@ def test_cuda_device_without_a_gpu_is_a_clear_config_error():
         with pytest.raises(ConfigError, match="CUDA is not available"):
             Trainer(ModelConfig(channels=8, residual_blocks=1), LearnerConfig(device="cuda"), RewardConfig(),
                     TaskConfig())
+
+
+def test_two_harmonic_rotation_head_learns_a_cube_grasp_the_first_harmonic_averages_away():
+    """Successes at one pixel alternate between theta and theta + 90 degrees (a cube grasped across either
+    face pair). Trained on them, the second harmonic learns the cube's faces, so the decoded angle is square
+    to them; the first harmonic's targets cancel and it stays weak."""
+    from romannet.common.config import ModelConfig
+    from romannet.common.model import decode_rotation
+
+    theta = 0.35
+    t = H.trainer(model=ModelConfig(channels=8, residual_blocks=1, rotation_harmonics=2), lr=0.002)
+    items = [(H.transition(primitive="pick", seed=0, row=10, col=12, angle_rad=theta + k * math.pi / 2,
+                           reward=0.5, done=True), 1.0, k) for k in range(2)]
+    for _ in range(60):
+        t.train_step(items)
+    t.model.eval()
+    with torch.no_grad():
+        x = preprocess_batch(items[0][0].color_before[None], items[0][0].depth_before[None])
+        rot = t.model.nets["pick"](x)[1][0, :, 10, 12].numpy()
+    first, second = math.hypot(rot[0], rot[1]), math.hypot(rot[2], rot[3])
+    assert second > 0.6 and first < 0.3 * second, rot
+    decoded = float(decode_rotation(rot, "pick"))
+    assert abs(math.remainder(decoded - theta, math.pi / 2)) < math.radians(5), math.degrees(decoded)
