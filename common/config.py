@@ -147,6 +147,10 @@ class RewardConfig:
     anisotropy: float = 2.0  # sigma_x / sigma_y, x along the gripper's x axis (the paper's ratio)
     kernel_normalization: Literal["peak", "paper"] = "peak"
     kernel_radius_sigmas: float = 3.0  # support: the ellipse of this Mahalanobis radius (r sigma_x by r sigma_y)
+    # Where a zero reward (a failed or progress-reversing action) is learned: "kernel" = 0 on the Gaussian's
+    # whole support, as a success's reward is spread; "pixel" = at the executed pixel only, as VPG and the
+    # R_tp ablation (R_tp (*) G of a zero reward is zero everywhere: the paper does not say where it applies).
+    zero_reward_support: Literal["kernel", "pixel"] = "kernel"
     occupied_height_m: float = 0.01  # clutter progress: a pixel is occupied above this height
     progress_tolerance: float = 0.02  # a progress drop larger than this is a reversal (reward 0)
 
@@ -159,6 +163,8 @@ class RewardConfig:
                 "must be 1..10 (the paper uses sigma_x / sigma_y = 2)")
         require(1.0 <= self.kernel_radius_sigmas <= 6.0, "reward.kernel_radius_sigmas",
                 self.kernel_radius_sigmas, "must be 1..6")
+        require(self.zero_reward_support in ("kernel", "pixel"), "reward.zero_reward_support",
+                self.zero_reward_support, "must be 'kernel' or 'pixel'")
         require(0.0 < self.occupied_height_m < 0.2, "reward.occupied_height_m", self.occupied_height_m,
                 "must be in (0, 0.2) m")
         require(0.0 <= self.progress_tolerance < 0.5, "reward.progress_tolerance", self.progress_tolerance,

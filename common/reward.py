@@ -174,7 +174,8 @@ def tpg_label(shape: tuple[int, int], row: int, col: int, angle_rad: float, r_tp
     reward_map = max(R_tp at the executed pixel, R_tp (*) G) = R_tpg; support_mask is where the label is defined
     (the kernel's support, clipped at the image border), which is where the Huber loss runs. With r_tp = 0 (a
     failed or reversing action) the map is all zeros but the support is unchanged: the net learns 0 around the
-    pixel. With cfg.use_gaussian False (the R_tp ablation) map and support are the single executed pixel.
+    pixel. With cfg.use_gaussian False (the R_tp ablation) map and support are the single executed pixel, and so
+    they are for r_tp = 0 with cfg.zero_reward_support = "pixel".
 
     Normalization (cfg.kernel_normalization): the default "peak" (G(0) = 1) gives neighbours almost the executed
     pixel's reward, the paper's stated intuition ("action poses in the local neighbourhood should yield similar
@@ -195,7 +196,7 @@ def tpg_label(shape: tuple[int, int], row: int, col: int, angle_rad: float, r_tp
         raise ValueError(f"r_tp = {r_tp!r} must be a finite reward >= 0 (R_tp = W X P)")
     reward_map = np.zeros((h, w), dtype=np.float32)
     support = np.zeros((h, w), dtype=bool)
-    if not cfg.use_gaussian:
+    if not cfg.use_gaussian or (r_tp == 0.0 and cfg.zero_reward_support == "pixel"):
         reward_map[row, col] = r_tp
         support[row, col] = True
         return reward_map, support

@@ -11,6 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from romannet.common.config import RewardConfig
+from romannet.common.errors import ConfigError
 from romannet.common.reward import (
     clutter_progress,
     gaussian_kernel,
@@ -193,6 +194,21 @@ def test_zero_reward_still_has_a_support():
     _, success_support = tpg_label(SHAPE, 50, 60, 1.0, 1.0, CFG)
     np.testing.assert_array_equal(support, success_support)
     assert support.sum() > 100
+
+
+def test_zero_reward_support_pixel_learns_a_failure_at_its_pixel_only():
+    """reward.zero_reward_support = "pixel": a failure's label is 0 at the executed pixel alone; a success
+    keeps the Gaussian's whole support, and so does a failure under the default "kernel"."""
+    pixel = replace(CFG, zero_reward_support="pixel")
+    reward, support = tpg_label(SHAPE, 50, 60, 1.0, 0.0, pixel)
+    assert support.sum() == 1 and support[50, 60] and not reward.any()
+    success, success_support = tpg_label(SHAPE, 50, 60, 1.0, 0.7, pixel)
+    expected, expected_support = tpg_label(SHAPE, 50, 60, 1.0, 0.7, CFG)
+    np.testing.assert_array_equal(success_support, expected_support)
+    np.testing.assert_array_equal(success, expected)
+    assert tpg_label(SHAPE, 50, 60, 1.0, 0.0, CFG)[1].sum() > 100
+    with pytest.raises(ConfigError, match="reward.zero_reward_support"):
+        replace(CFG, zero_reward_support="everywhere")
 
 
 def test_rotating_the_action_rotates_the_label():
