@@ -73,6 +73,21 @@ def bootstrap_value(next_q_maps: Mapping[str, np.ndarray | Tensor | float], hold
     return best
 
 
+def return_range(reward_cfg: RewardConfig, gamma: float) -> tuple[float, float]:
+    """(lowest, highest) discounted return an action can have: rewards lie in [0, the largest weight W]
+    (R_tp = W X P with X in {0, 1} and P in [0, 1]), so returns lie in [0, W / (1 - gamma)]."""
+    if not 0.0 <= gamma < 1.0:
+        raise ValueError(f"gamma = {gamma!r} must be in [0, 1)")
+    top = max(reward_cfg.push_weight, reward_cfg.pick_weight, reward_cfg.place_weight)
+    return 0.0, top / (1.0 - gamma)
+
+
+def clip_value(v_next: float, bounds: tuple[float, float]) -> float:
+    """V(s_{t+1}) clipped into `bounds` (learner.bootstrap_clip; see return_range)."""
+    low, high = bounds
+    return float(min(max(v_next, low), high))
+
+
 def td_target(reward: float, v_next: float, gamma: float) -> float:
     """Y = r + eta(r) * gamma * V(s_{t+1}); r is R_tp (the executed pixel's reward)."""
     if not 0.0 <= gamma < 1.0:

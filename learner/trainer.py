@@ -44,7 +44,16 @@ from romannet.common.model import RoManNet, preprocess_batch, state_dict_to_tens
 from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 
-from .targets import bootstrap_value, huber, q_label, rotation_target, support_loss, td_target
+from .targets import (
+    bootstrap_value,
+    clip_value,
+    huber,
+    q_label,
+    return_range,
+    rotation_target,
+    support_loss,
+    td_target,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -169,9 +178,12 @@ class Trainer:
                     q, _ = net_model.nets[p](x)
                 for i, m in zip(idx, q.float().amax(dim=(1, 2)).tolist(), strict=True):
                     maxima[i][p] = m
+            bounds = return_range(self.reward_cfg, self.cfg.gamma) if self.cfg.bootstrap_clip else None
             for i in need:
                 t = transitions[i]
                 values[i] = bootstrap_value(maxima[i], t.holding_after, self.primitives, t.done)
+                if bounds is not None:
+                    values[i] = clip_value(values[i], bounds)
         finally:
             net_model.train(was_training)
         return values

@@ -95,3 +95,14 @@ def test_huber_matches_the_paper_and_support_reduction():
     support = torch.tensor([[True, True], [False, False]])
     assert float(T.support_loss(q, label, support, 1.0, "sum")) == pytest.approx(3.0)
     assert float(T.support_loss(q, label, support, 1.0, "mean")) == pytest.approx(1.5)
+
+
+def test_return_range_and_clipping_the_bootstrap():
+    from romannet.common.config import RewardConfig
+
+    assert T.return_range(RewardConfig(), 0.5) == (0.0, 2.0)  # rewards <= 1 (pick/place), gamma 0.5
+    assert T.return_range(RewardConfig(pick_weight=0.5, place_weight=0.5, push_weight=0.2), 0.75) == (0.0, 2.0)
+    assert T.clip_value(7.6, (0.0, 2.0)) == 2.0 and T.clip_value(-0.5, (0.0, 2.0)) == 0.0
+    assert T.clip_value(0.3, (0.0, 2.0)) == 0.3
+    with pytest.raises(ValueError, match="gamma"):
+        T.return_range(RewardConfig(), 1.0)

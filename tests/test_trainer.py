@@ -193,3 +193,22 @@ def test_two_harmonic_rotation_head_learns_a_cube_grasp_the_first_harmonic_avera
     assert second > 0.6 and first < 0.3 * second, rot
     decoded = float(decode_rotation(rot, "pick"))
     assert abs(math.remainder(decoded - theta, math.pi / 2)) < math.radians(5), math.degrees(decoded)
+
+
+@pytest.mark.parametrize("place_bias, expected_v", [(10.0, 2.0), (-5.0, 0.0)])
+def test_bootstrap_clip_keeps_the_future_value_in_the_return_range(place_bias, expected_v):
+    """learner.bootstrap_clip: a successful pick bootstraps from the place net's max Q; a net far outside
+    [0, W / (1 - gamma)] = [0, 2] no longer drags the pick's target with it (off: the raw value)."""
+    from romannet.common.config import TaskConfig
+
+    ok = H.transition(primitive="pick", reward=0.25, done=False, holding_after=True, task="stacking")
+    for clip in (True, False):
+        t = H.trainer(task=TaskConfig(kind="stacking", use_push=False), bootstrap_clip=clip)
+        with torch.no_grad():
+            t.model.nets["place"].q_head.bias.fill_(place_bias)
+        v = t.next_state_values([ok])[0]
+        if clip:
+            assert v == expected_v
+            assert t.train_step([(ok, 1.0, 0)]).targets[0] == pytest.approx(0.25 + 0.5 * expected_v)
+        else:
+            assert (v > 2.0) if place_bias > 0 else (v < 0.0)
