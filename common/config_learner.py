@@ -39,7 +39,7 @@ class LearnerConfig:
     target_network: bool = False  # bootstrap V(s_{t+1}) from a lagged copy instead of the online net
     # Clip V(s_{t+1}) into the range a return can have, [0, largest reward weight / (1 - gamma)]: rewards are
     # >= 0 and <= that weight, so a V outside it is the nets' error. Off = the paper's target. Seen without it:
-    # the place net's largest Q in a batch went from 7.6 to -0.5 within ten updates, and a successful pick's
+    # the place net's largest Q in a batch went from 7.6 to -0.4 in nine updates, and a successful pick's
     # target R + gamma V moves with it, from ~4 to below a failed pick's 0 (docs/results.md).
     bootstrap_clip: bool = False
     target_sync_every_updates: int = 100  # copy online -> target every this many updates

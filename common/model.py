@@ -58,7 +58,7 @@ class ResidualBlock(nn.Module):
 
 
 class GRConvNet(nn.Module):
-    """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2 harmonics, h, w): cos, sin, ...)."""
+    """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2 * harmonics, h, w): cos, sin, ...)."""
 
     def __init__(self, channels: int = 32, residual_blocks: int = 5, dropout: float = 0.0, in_channels: int = 4,
                  rotation_harmonics: int = 1):

@@ -5,9 +5,10 @@ clutter     N objects of `sim.object_set` dropped at random (again, where one la
             the initial clutter footprint cleared.
 arrangement a test-case file (VPG's format) placed as written, the whole case shifted and turned a little per
             seed (sim.case_jitter_m, sim.case_jitter_deg); otherwise like clutter.
-stacking    `sim.num_stacking_cubes` cubes of edge `task.cube_size_m` (5 cm by default) placed flat at random, apart from each other; a picked cube stays in the hand until
-            placed; done when the ground-truth stack reaches `task.goal_stack_height`. Progress: stack
-            height from the depth heightmap / goal.
+stacking    `sim.num_stacking_cubes` cubes of edge `task.cube_size_m` (5 cm by default) placed flat at
+            random, apart from each other; a picked cube stays in the hand until placed; done when the
+            ground-truth stack reaches `task.goal_stack_height`. Progress: stack height from the depth
+            heightmap / goal.
 Positions in the world (= robot base) frame, metres; table top z = 0.
 """
 
