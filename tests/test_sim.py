@@ -83,6 +83,29 @@ def test_stack_height_from_heightmap_agrees_with_poses(env, height):
     assert env.stack_height_hm(env.obs.depth_hm) == height
 
 
+def test_a_cube_in_the_air_or_in_the_hand_is_not_a_stack(env):
+    """Ground truth counts cubes standing on the table or on a counted cube only. Counting the highest top
+    read a cube carried at 0.5 m as a stack of 10 and ended training episodes as "done"."""
+    _scene_with_cubes(env, [(0.5, 0.0, 0.025, 0.0), (0.5, 0.0, 0.075, 0.0), (0.62, 0.1, 0.025, 0.0)])
+    assert env.stack_height_gt() == 2
+    floating = env.scene.objects[2]
+    p.resetBasePositionAndOrientation(floating, (0.62, 0.1, 0.5), (0, 0, 0, 1), physicsClientId=env.scene.client)
+    assert env.stack_height_gt() == 2  # not 10
+    # just above the stack's top (held over it, not yet let go): not on it either
+    p.resetBasePositionAndOrientation(floating, (0.5, 0.0, 0.125 + 0.03), (0, 0, 0, 1),
+                                      physicsClientId=env.scene.client)
+    assert env.stack_height_gt() == 2
+    # resting on the stack: a third level
+    p.resetBasePositionAndOrientation(floating, (0.5, 0.0, 0.125 + 0.001), (0, 0, 0, 1),
+                                      physicsClientId=env.scene.client)
+    assert env.stack_height_gt() == 3
+    # a pick that lifts a cube: the env's held cube and nothing else is at height, the stack stays counted
+    _scene_with_cubes(env, [(0.45, -0.1, 0.025, 0.3), (0.6, 0.1, 0.025, -0.2)])
+    result = env.step(oracle_action(env))
+    assert result.success and env.holding
+    assert env.stack_height_gt() == 1 and not result.done
+
+
 def test_place_on_a_cube_raises_the_stack_to_two(env):
     _scene_with_cubes(env, [(0.45, -0.1, 0.025, 0.3), (0.6, 0.1, 0.025, -0.2)])
     pick = oracle_action(env)
