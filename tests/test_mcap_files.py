@@ -89,7 +89,21 @@ def test_unfinished_and_cut_files_read_up_to_the_last_whole_chunk(episodes, tmp_
 def test_a_damaged_chunk_ends_the_read_there(episodes, tmp_path: Path) -> None:
     _, full, _ = episodes
     data = bytearray(full.path.read_bytes())
-    data[len(data) * 3 // 4] ^= 0xFF  # inside a later chunk: its CRC no longer matches
+    # A byte in the middle of the records of the last chunk but one: that chunk's CRC no longer matches. Found
+    # by walking the records (opcode, length, body), not at a fixed share of the file: a fixed offset landed
+    # outside the checked bytes once the recorded config grew.
+    chunks, offset = [], 8  # after the magic
+    while offset + 9 <= len(data) and data[offset] != 0x02:  # 0x02: footer
+        opcode, length = data[offset], int.from_bytes(data[offset + 1:offset + 9], "little")
+        if opcode == 0x06:
+            body = offset + 9
+            comp_len = int.from_bytes(data[body + 28:body + 32], "little")
+            records = body + 32 + comp_len + 8
+            chunks.append((records, body + length))
+        offset += 9 + length
+    assert len(chunks) >= 3
+    start, end = chunks[-2]
+    data[(start + end) // 2] ^= 0xFF
     (tmp_path / "bad.mcap").write_bytes(bytes(data))
     ep = read_episode(tmp_path / "bad.mcap")
     assert not ep.health.complete
