@@ -16,8 +16,6 @@ medians, since their centre is not one object's. Prints one JSON object (or a li
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import statistics
 import sys
@@ -28,11 +26,11 @@ import cv2
 import numpy as np
 import tomllib
 
-from romannet.common.episode_file import TRANSITION_TOPIC, EpisodeFileError, episode_paths, read_episode
+from romannet.common.episode_file import TRANSITION_TOPIC, EpisodeFileError, read_episode
 from romannet.common.errors import DecodeError
 from romannet.common.wire import decode_transition
 
-from .repeated_failures import split_phases
+from .episode_phases import phase_parser, run_phases
 
 MAX_GAP_PX = 8  # a pick pixel this close to an object (but off it) is still measured against that object
 ANGLE_BINS_DEG = ((0, 10), (10, 20), (20, 30), (30, 45.01))
@@ -135,24 +133,13 @@ def _resolution_m(path: Path, config_toml: str) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("run_dir", help="a run directory (its episodes/) or a directory of episode files")
-    p.add_argument("--split", type=int, default=0, help="first episode index of the second phase (0: one phase)")
+    p = phase_parser(__doc__.split("\n")[0])
     p.add_argument("--min-height", type=float, default=0.02, help="object pixels are higher than this (m)")
     p.add_argument("--max-area-cm2", type=float, default=35.0,
                    help="larger blobs (stacks, touching objects) are left out of the medians (default 35)")
-    p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
-    root = Path(args.run_dir)
-    try:
-        files = episode_paths([root / "episodes" if (root / "episodes").is_dir() else root])
-        out = {name: summarize((pick for f in group for pick in episode_picks(f, args.min_height)),
-                               args.max_area_cm2) for name, group in split_phases(files, args.split).items()}
-    except EpisodeFileError as err:
-        print(err, file=sys.stderr)
-        return 2
-    print(json.dumps(out, indent=2) if args.json else "\n".join(f"{k}: {v}" for k, v in out.items()))
-    return 0
+    return run_phases(args, lambda files: summarize(
+        (pick for f in files for pick in episode_picks(f, args.min_height)), args.max_area_cm2))
 
 
 if __name__ == "__main__":

@@ -11,27 +11,13 @@ many of those repeats ran on the same weights version. Prints one JSON object (o
 
 from __future__ import annotations
 
-import argparse
 import json
-import re
 import sys
 from pathlib import Path
 
-from romannet.common.episode_file import EpisodeFileError, episode_paths, read_episode
+from romannet.common.episode_file import read_episode
 
-
-def episode_index(path: Path) -> int:
-    """The number in an episode file's name (ep000012.mcap -> 12); -1 for a name without one."""
-    digits = re.search(r"(\d+)$", path.stem)
-    return int(digits.group(1)) if digits else -1
-
-
-def split_phases(files: list[Path], split: int) -> dict[str, list[Path]]:
-    """{phase name: files}: one phase "all" if split <= 0, else episodes before `split` and from it on."""
-    if split <= 0:
-        return {"all": files}
-    return {f"episodes < {split}": [f for f in files if episode_index(f) < split],
-            f"episodes >= {split}": [f for f in files if episode_index(f) >= split]}
+from .episode_phases import phase_parser, run_phases
 
 
 def _steps(path: Path) -> list[dict]:
@@ -66,20 +52,8 @@ def count_repeats(episodes: list[list[dict]]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("run_dir", help="a run directory (its episodes/) or a directory of episode files")
-    p.add_argument("--split", type=int, default=0, help="first episode index of the second phase (0: one phase)")
-    p.add_argument("--json", action="store_true")
-    args = p.parse_args(argv)
-    root = Path(args.run_dir)
-    try:
-        files = episode_paths([root / "episodes" if (root / "episodes").is_dir() else root])
-        out = {name: phase_counts(group) for name, group in split_phases(files, args.split).items()}
-    except EpisodeFileError as err:
-        print(err, file=sys.stderr)
-        return 2
-    print(json.dumps(out, indent=2) if args.json else "\n".join(f"{k}: {v}" for k, v in out.items()))
-    return 0
+    args = phase_parser(__doc__.split("\n")[0]).parse_args(argv)
+    return run_phases(args, phase_counts)
 
 
 if __name__ == "__main__":

@@ -292,7 +292,7 @@ def test_pick_offsets_reads_a_run_from_its_recorded_transitions(tmp_path):
 
 
 def test_phases_split_runs_by_the_number_in_the_episode_file_name(tmp_path):
-    from romannet.bench.repeated_failures import episode_index, split_phases
+    from romannet.bench.episode_phases import episode_index, split_phases
 
     files = [tmp_path / n for n in ("ep000003.mcap", "ep000020.mcap", "ep000100.mcap", "notes.mcap")]
     assert [episode_index(f) for f in files] == [3, 20, 100, -1]

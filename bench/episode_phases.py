@@ -1,0 +1,50 @@
+"""The command line the run analyses share (repeated_failures, pick_offsets): a run's recorded episodes,
+split into training phases by episode number, one result per phase, printed as JSON or a line each."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from romannet.common.episode_file import EpisodeFileError, episode_paths
+
+
+def episode_index(path: Path) -> int:
+    """The number in an episode file's name (ep000012.mcap -> 12); -1 for a name without one."""
+    digits = re.search(r"(\d+)$", path.stem)
+    return int(digits.group(1)) if digits else -1
+
+
+def split_phases(files: list[Path], split: int) -> dict[str, list[Path]]:
+    """{phase name: files}: one phase "all" if split <= 0, else episodes before `split` and from it on."""
+    if split <= 0:
+        return {"all": files}
+    return {f"episodes < {split}": [f for f in files if episode_index(f) < split],
+            f"episodes >= {split}": [f for f in files if episode_index(f) >= split]}
+
+
+def phase_parser(description: str) -> argparse.ArgumentParser:
+    """run_dir, --split and --json; the caller adds its own options."""
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("run_dir", help="a run directory (its episodes/) or a directory of episode files")
+    p.add_argument("--split", type=int, default=0, help="first episode index of the second phase (0: one phase)")
+    p.add_argument("--json", action="store_true")
+    return p
+
+
+def run_phases(args: argparse.Namespace, per_phase: Callable[[list[Path]], dict]) -> int:
+    """per_phase(files) of each phase of args.run_dir, printed; exit status 2 (and the file's error on stderr)
+    when a file is not a readable episode."""
+    root = Path(args.run_dir)
+    try:
+        files = episode_paths([root / "episodes" if (root / "episodes").is_dir() else root])
+        out = {name: per_phase(group) for name, group in split_phases(files, args.split).items()}
+    except EpisodeFileError as err:
+        print(err, file=sys.stderr)
+        return 2
+    print(json.dumps(out, indent=2) if args.json else "\n".join(f"{k}: {v}" for k, v in out.items()))
+    return 0
