@@ -189,27 +189,28 @@ class SimEnv:
         reward = task_progress_reward(action.primitive, success, p_after, self.reward_cfg, reversed=reversed_)
         self.consecutive_failures = 0 if success else self.consecutive_failures + 1
 
-        done_reason = self._done_reason(unstable)
+        in_workspace, height_gt = objects_in_workspace(self.scene), self.stack_height_gt()  # once per step
+        done_reason = self._done_reason(unstable, in_workspace, height_gt)
         self._episode_over = bool(done_reason)
         if unstable:
             log.warning("episode ended unstable (seed %d, step %d): %s", self.seed, self.steps, unstable)
         info: dict[str, float | int | str | bool] = {
             "seed": self.seed, "step": self.steps, "physics_steps": result.steps,
-            "objects_in_workspace": objects_in_workspace(self.scene),
-            "stack_height_gt": self.stack_height_gt(), "stack_height_hm": self.stack_height_hm(self.obs.depth_hm),
+            "objects_in_workspace": in_workspace,
+            "stack_height_gt": height_gt, "stack_height_hm": self.stack_height_hm(self.obs.depth_hm),
             "moved_m": result.moved_m, "consecutive_failures": self.consecutive_failures,
             "unstable": unstable,
         }
         return StepResult(self.obs, success, p_before, p_after, reward, bool(done_reason), done_reason,
                           detail, info)
 
-    def _done_reason(self, unstable: str) -> str:
+    def _done_reason(self, unstable: str, in_workspace: int, height_gt: int) -> str:
         if unstable:
             return "unstable"
         if self.task_def.progress == "stacking":
-            if self.stack_height_gt() >= self.task.goal_stack_height:
+            if height_gt >= self.task.goal_stack_height:
                 return "done"
-        elif objects_in_workspace(self.scene) == 0:
+        elif in_workspace == 0:
             return "done"
         if self.consecutive_failures >= self.sim.max_consecutive_failures:
             return "consecutive_failures"

@@ -175,18 +175,18 @@ def stack_height_from_poses(scene: Scene, cube_size_m: float, exclude: int | Non
     training episodes as "done" (docs/results.md). exclude: a body to ignore (the cube the env knows is held).
     Objects outside the workspace do not count.
     """
-    half = 0.5 * cube_size_m
-    bodies = sorted((scene.bottom_z(b) - scene.ws.z_min_m, b) for b in scene.objects
-                    if b != exclude and scene.in_workspace(b))
-    level: dict[int, int] = {}
-    for bottom, b in bodies:  # from the lowest up, so a supporting cube is placed before what it carries
+    half, z0 = 0.5 * cube_size_m, scene.ws.z_min_m
+    # (bottom, top, xy) of each body, read once; sorted from the lowest up, so a supporting cube has its
+    # level before what it carries is looked at.
+    bodies = sorted(((scene.bottom_z(b) - z0, scene.top_z(b) - z0, scene.pose(b)[0][:2]) for b in scene.objects
+                     if b != exclude and scene.in_workspace(b)), key=lambda body: body[0])
+    counted: list[tuple[float, np.ndarray, int]] = []  # (top, xy, level) of the cubes in a stack
+    for bottom, top, xy in bodies:
         if bottom < half:
-            level[b] = 1
+            counted.append((top, xy, 1))
             continue
-        xy = scene.pose(b)[0][:2]
-        below = [level[o] for o in level
-                 if abs(bottom - (scene.top_z(o) - scene.ws.z_min_m)) < half
-                 and float(np.linalg.norm(scene.pose(o)[0][:2] - xy)) < cube_size_m]
+        below = [lvl for t, q, lvl in counted
+                 if abs(bottom - t) < half and float(np.linalg.norm(q - xy)) < cube_size_m]
         if below:
-            level[b] = max(below) + 1
-    return max(level.values(), default=0)
+            counted.append((top, xy, max(below) + 1))
+    return max((lvl for _, _, lvl in counted), default=0)
