@@ -10,6 +10,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import tomllib
+
 from romannet.common.episode_file import EpisodeFileError, episode_paths
 
 
@@ -17,6 +19,18 @@ def episode_index(path: Path) -> int:
     """The number in an episode file's name (ep000012.mcap -> 12); -1 for a name without one."""
     digits = re.search(r"(\d+)$", path.stem)
     return int(digits.group(1)) if digits else -1
+
+
+def recorded_number(path: Path, config_toml: str, section: str, key: str) -> float:
+    """A positive number from the config the actor recorded in an episode file (e.g. workspace.resolution_m);
+    EpisodeFileError when it is missing or not a positive number."""
+    try:
+        value = tomllib.loads(config_toml)[section][key]
+    except (tomllib.TOMLDecodeError, KeyError, TypeError) as err:
+        raise EpisodeFileError(path, f"no {section}.{key} in its recorded config ({err})") from err
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and value > 0):
+        raise EpisodeFileError(path, f"recorded {section}.{key} = {value!r} is not a positive number")
+    return float(value)
 
 
 def split_phases(files: list[Path], split: int) -> dict[str, list[Path]]:

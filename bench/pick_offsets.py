@@ -24,13 +24,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import tomllib
 
 from romannet.common.episode_file import TRANSITION_TOPIC, EpisodeFileError, read_episode
 from romannet.common.errors import DecodeError
 from romannet.common.wire import decode_transition
 
-from .episode_phases import phase_parser, run_phases
+from .episode_phases import phase_parser, recorded_number, run_phases
 
 MAX_GAP_PX = 8  # a pick pixel this close to an object (but off it) is still measured against that object
 ANGLE_BINS_DEG = ((0, 10), (10, 20), (20, 30), (30, 45.01))
@@ -106,7 +105,7 @@ def episode_picks(path: Path, min_height_m: float) -> list[dict]:
     and the depth heightmap before it, so nothing depends on how the other topics interleave.
     """
     episode = read_episode(path, topics=[TRANSITION_TOPIC])
-    resolution_m = _resolution_m(path, episode.config_toml)
+    resolution_m = recorded_number(path, episode.config_toml, "workspace", "resolution_m")
     out = []
     for message in episode.of(TRANSITION_TOPIC):
         try:
@@ -119,17 +118,6 @@ def episode_picks(path: Path, min_height_m: float) -> list[dict]:
                             min_height_m)
         out.append({"explored": t.action.explored, "success": t.success, **(where or {"along_m": None})})
     return out
-
-
-def _resolution_m(path: Path, config_toml: str) -> float:
-    """workspace.resolution_m of the config the actor recorded in the episode file."""
-    try:
-        value = tomllib.loads(config_toml)["workspace"]["resolution_m"]
-    except (tomllib.TOMLDecodeError, KeyError, TypeError) as err:
-        raise EpisodeFileError(path, f"no workspace.resolution_m in its recorded config ({err})") from err
-    if not (isinstance(value, (int, float)) and value > 0):
-        raise EpisodeFileError(path, f"recorded workspace.resolution_m = {value!r} is not a positive number")
-    return float(value)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -112,3 +112,66 @@ def record_episode(path: Path, steps: int, actor_id: str = "a0", episode_id: str
         rec._file.close()
         rec._closed = True
     return out
+
+
+# A scripted stacking episode (32 x 32 px at 0.014 m, cubes 4 px wide and task.cube_size_m = 0.05 m high per
+# level): (primitive, target cube or None for the bare table, explored, success); the heights change as the
+# script says, and the stack height, P and R_tp are computed as the simulator computes them.
+STACK_CUBES = [(2, 2), (2, 10), (2, 18), (10, 2)]
+STACK_SCRIPT = [("pick", 0, False, True),  # a lone cube lifted
+                ("place", 1, False, True),  # onto another: a stack of 2
+                ("pick", 1, False, True),  # its top cube taken off again (progress reversed)
+                ("place", 2, False, True),  # onto a third: a stack of 2 again
+                ("pick", 3, False, False),  # a lone cube missed
+                ("pick", None, True, False)]  # the bare table, explored
+
+
+def record_stacking_episode(path: Path, run_id: str = "stack-test") -> None:
+    """Record STACK_SCRIPT with the real recorder, as a stacking actor would."""
+    from romannet.common.reward import stacking_progress
+    from romannet.common.stack import stack_height
+
+    cfg = load_config(None, [*OVERRIDES, f'run_id="{run_id}"', 'task.kind="stacking"', "task.goal_stack_height=4"])
+    cube_m, goal = cfg.task.cube_size_m, cfg.task.goal_stack_height
+    levels = [1] * len(STACK_CUBES)
+
+    def observe() -> Observation:
+        depth = np.zeros((SIDE_PX, SIDE_PX), np.float32)
+        for (r, c), n in zip(STACK_CUBES, levels, strict=True):
+            depth[r:r + BLOCK_PX, c:c + BLOCK_PX] = n * cube_m
+        return Observation(np.full((SIDE_PX, SIDE_PX, 3), 90, np.uint8), depth, False,
+                           np.zeros((24, 32, 3), np.uint8), np.full((24, 32), 0.7, np.float32))
+
+    rec = EpisodeRecorder(path, {"run_id": run_id, "actor_id": "a0", "episode_id": "ep000000", "task": "stacking",
+                                 "seed": 0, "weights_version_start": 0}, dumps_toml(cfg), chunk_bytes=64 * 1024)
+    t_ns = 1_700_000_000_000_000_000
+    obs = observe()
+    rec.write_observation(obs, t_ns)
+    holding = False
+    for step, (primitive, cube, explored, success) in enumerate(STACK_SCRIPT):
+        r, c = STACK_CUBES[cube] if cube is not None else (SIDE_PX - 3, SIDE_PX - 3)
+        if success:
+            levels[cube] += 1 if primitive == "place" else -1
+            holding = primitive == "pick"
+        after = observe()
+        p_before = stacking_progress(stack_height(obs.depth_hm, cube_m), goal)
+        p_after = stacking_progress(stack_height(after.depth_hm, cube_m), goal)
+        reward = task_progress_reward(primitive, success, p_after, cfg.reward,
+                                      reversed=progress_reversed(p_before, p_after, cfg.reward.progress_tolerance))
+        start_ns = t_ns + (2 * step + 1) * 10**9
+        msg = TransitionMsg(
+            actor_id="a0", episode_id="ep000000", step=step, start_ns=start_ns, end_ns=start_ns + 10**9,
+            task="stacking", color_before=obs.color_hm, depth_before=obs.depth_hm, color_after=after.color_hm,
+            depth_after=after.depth_hm, action=Action(primitive, r + 1, c + 1, 0.0, 0.5, explored=explored),
+            success=success, progress_before=p_before, progress_after=p_after, reward=reward,
+            done=step == len(STACK_SCRIPT) - 1, done_reason="step_limit" if step == len(STACK_SCRIPT) - 1 else "",
+            holding_before=primitive == "place", holding_after=holding, policy_version=step, explore_rate=0.1,
+            initial_priority=None, sim_seed=0)
+        rec.write_observation(after, start_ns + 10**9)
+        rec.write_step(encode_transition(msg), {"step": step, "episode_id": "ep000000", "primitive": primitive,
+                                                "success": success, "reward": reward, "progress_before": p_before,
+                                                "progress_after": p_after, "detail": "", "q_ranges": {}},
+                       start_ns + 10**9)
+        obs = after
+    rec.close({"done_reason": "step_limit", "steps": len(STACK_SCRIPT), "efficiency": None,
+               "weights_version_end": len(STACK_SCRIPT)})

@@ -298,3 +298,65 @@ def test_phases_split_runs_by_the_number_in_the_episode_file_name(tmp_path):
     assert [episode_index(f) for f in files] == [3, 20, 100, -1]
     assert split_phases(files, 0) == {"all": files}
     assert split_phases(files, 20) == {"episodes < 20": [files[0], files[3]], "episodes >= 20": files[1:3]}
+
+
+def test_cubes_under_an_action_counts_levels_of_the_tallest_point_near_its_pixel():
+    from romannet.bench.stack_actions import cubes_under
+
+    hm = np.zeros((40, 40), np.float32)
+    hm[5:15, 5:15] = 0.05  # a lone cube
+    hm[20:30, 20:30] = 0.101  # a stack of two (a little depth noise)
+    assert cubes_under(hm, 10, 10, 0.05, 2) == 1
+    assert cubes_under(hm, 25, 25, 0.05, 2) == 2
+    assert cubes_under(hm, 35, 35, 0.05, 2) == 0  # bare table
+    assert cubes_under(hm, 17, 10, 0.05, 2) == 0 and cubes_under(hm, 17, 10, 0.05, 3) == 1  # beside the cube
+    hm[0, 0] = np.nan  # an unknown height reads as the table, not as a tower
+    assert cubes_under(hm, 0, 0, 0.05, 1) == 0
+    with pytest.raises(ValueError, match="outside"):
+        cubes_under(hm, 40, 0, 0.05, 2)
+    with pytest.raises(ValueError, match="cube_size_m"):
+        cubes_under(hm, 0, 0, 0.0, 2)
+
+
+def test_stack_actions_summary_counts_picks_off_and_places_on_a_stack_top():
+    from romannet.bench.stack_actions import summarize
+
+    def a(primitive, stack, under, success, explored=False):
+        return {"primitive": primitive, "stack": stack, "under": under, "success": success, "explored": explored}
+
+    out = summarize([a("pick", 1, 1, True), a("place", 1, 1, True),
+                     a("pick", 2, 2, True), a("pick", 2, 2, False), a("pick", 2, 1, True), a("pick", 2, 0, False),
+                     a("pick", 2, 2, True, explored=True),  # explored: not in the greedy headline
+                     a("place", 2, 2, True), a("place", 2, 1, False), a("place", 3, 1, False)])
+    assert out["while a stack of 2+ stood (greedy)"] == {
+        "picks": 4, "picks at a stack top": 2, "cubes taken off a stack": 1, "picks elsewhere": 2,
+        "picks elsewhere succeeded": 1, "places": 3, "places on a stack top": 1, "places that raised the stack": 1}
+    assert out["pick"]["greedy"]["stack 2, on 2"] == {"attempts": 2, "succeeded": 1}
+    assert out["pick"]["explored"] == {"stack 2, on 2": {"attempts": 1, "succeeded": 1}}
+    assert out["place"]["greedy"]["stack 3, on 1"] == {"attempts": 1, "succeeded": 0}
+
+
+def test_stack_actions_reads_a_stacking_run_from_its_recorded_transitions(tmp_path, capsys):
+    """End to end on an episode file written by the actor's recorder: a cube stacked, taken off the stack
+    and stacked again, a lone cube missed, the table explored."""
+    import json
+
+    from _episodes import STACK_SCRIPT, record_stacking_episode
+
+    from romannet.bench.stack_actions import episode_actions, main
+
+    episodes = tmp_path / "run" / "episodes" / "a0"
+    episodes.mkdir(parents=True)
+    record_stacking_episode(episodes / "ep000000.mcap")
+    actions = episode_actions(episodes / "ep000000.mcap", radius_m=0.005)
+    assert [(x["primitive"], x["stack"], x["under"], x["success"], x["explored"]) for x in actions] == [
+        ("pick", 1, 1, True, False), ("place", 1, 1, True, False), ("pick", 2, 2, True, False),
+        ("place", 1, 1, True, False), ("pick", 2, 1, False, False), ("pick", 2, 0, False, True)]
+    assert len(actions) == len(STACK_SCRIPT)
+    assert main([str(tmp_path / "run"), "--json"]) == 0
+    headline = json.loads(capsys.readouterr().out)["all"]["while a stack of 2+ stood (greedy)"]
+    assert (headline["picks at a stack top"], headline["cubes taken off a stack"], headline["picks elsewhere"]) == (1, 1, 1)
+    (tmp_path / "junk.mcap").write_bytes(b"not an episode")
+    assert main([str(tmp_path / "junk.mcap")]) == 2
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "run"), "--radius-m", "-1"])

@@ -1,0 +1,108 @@
+"""Where a stacking run's picks and places land: on the table, on a lone cube or on top of the stack.
+
+    python -m romannet.bench.stack_actions runs/stack-h4 --split 5 --json
+
+The paper's TPG reward gives 0 to an action that reverses progress, so a policy should learn not to pick
+cubes off the stack it is building, and to place on the stack's top. This reads a run's recorded episodes
+(each `/transition`: the action and the depth heightmap it acted on) and, for every pick and place, measures
+the stack height before it (common.stack.stack_height, as the simulator's reward does) and the number of
+cubes under the action pixel (the tallest point within `--radius-m` of it, in cube heights of the recorded
+task.cube_size_m). It reports per training phase, for greedy and explored actions apart, attempts and
+successes by (stack height, cubes under the pixel), and the headline counts: while a stack of 2 or more
+stood, how many greedy picks went to a stack top (and how many of them took a cube off it) and how many
+greedy places went to a stack top (and raised it). Prints one JSON object (or a line per phase).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from romannet.common.episode_file import TRANSITION_TOPIC, EpisodeFileError, read_episode
+from romannet.common.errors import DecodeError
+from romannet.common.stack import stack_height
+from romannet.common.wire import decode_transition
+
+from .episode_phases import phase_parser, recorded_number, run_phases
+
+
+def cubes_under(depth_hm: np.ndarray, row: int, col: int, cube_size_m: float, radius_px: int) -> int:
+    """Cubes under an action pixel: the tallest height within radius_px of it, in whole cube heights."""
+    if not cube_size_m > 0 or radius_px < 0:
+        raise ValueError(f"cube_size_m must be > 0 and radius_px >= 0; got {cube_size_m}, {radius_px}")
+    h, w = depth_hm.shape
+    if not (0 <= row < h and 0 <= col < w):
+        raise ValueError(f"pixel ({row}, {col}) is outside the {h}x{w} heightmap")
+    patch = depth_hm[max(row - radius_px, 0):row + radius_px + 1, max(col - radius_px, 0):col + radius_px + 1]
+    tallest = float(np.nan_to_num(patch, nan=0.0, posinf=0.0, neginf=0.0).max())
+    return max(0, int(np.rint(tallest / cube_size_m)))
+
+
+def episode_actions(path: Path, radius_m: float) -> list[dict]:
+    """{primitive, explored, success, stack, under} of every recorded pick and place of one episode file."""
+    episode = read_episode(path, topics=[TRANSITION_TOPIC])
+    cube_m = recorded_number(path, episode.config_toml, "task", "cube_size_m")
+    radius_px = int(round(radius_m / recorded_number(path, episode.config_toml, "workspace", "resolution_m")))
+    out = []
+    for message in episode.of(TRANSITION_TOPIC):
+        try:
+            t = decode_transition(message.data)
+        except DecodeError as err:
+            raise EpisodeFileError(path, f"a /transition record does not decode: {err}") from err
+        a = t.action
+        if a.primitive not in ("pick", "place"):
+            continue
+        out.append({"primitive": a.primitive, "explored": bool(a.explored), "success": bool(t.success),
+                    "stack": stack_height(t.depth_before, cube_m),
+                    "under": cubes_under(t.depth_before, a.row, a.col, cube_m, radius_px)})
+    return out
+
+
+def _count(actions: list[dict]) -> dict:
+    return {"attempts": len(actions), "succeeded": sum(a["success"] for a in actions)}
+
+
+def summarize(actions: Iterable[dict]) -> dict:
+    """Attempts / successes by primitive, greedy vs explored and (stack, cubes under the pixel); headlines."""
+    actions = list(actions)
+    out: dict = {}
+    for primitive in ("pick", "place"):
+        mine = [a for a in actions if a["primitive"] == primitive]
+        rows: dict = {}
+        for kind, explored in (("greedy", False), ("explored", True)):
+            group = [a for a in mine if a["explored"] == explored]
+            keys = sorted({(a["stack"], a["under"]) for a in group})
+            rows[kind] = {f"stack {s}, on {u}": _count([a for a in group if (a["stack"], a["under"]) == (s, u)])
+                          for s, u in keys}
+        out[primitive] = rows
+    greedy_tall = [a for a in actions if not a["explored"] and a["stack"] >= 2]
+    picks = [a for a in greedy_tall if a["primitive"] == "pick"]
+    places = [a for a in greedy_tall if a["primitive"] == "place"]
+    off_top = [a for a in picks if a["under"] == a["stack"]]
+    on_top = [a for a in places if a["under"] == a["stack"]]
+    out["while a stack of 2+ stood (greedy)"] = {
+        "picks": len(picks), "picks at a stack top": len(off_top),
+        "cubes taken off a stack": sum(a["success"] for a in off_top),
+        "picks elsewhere": len(picks) - len(off_top),
+        "picks elsewhere succeeded": sum(a["success"] for a in picks if a["under"] != a["stack"]),
+        "places": len(places), "places on a stack top": len(on_top),
+        "places that raised the stack": sum(a["success"] for a in places)}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = phase_parser(__doc__.split("\n")[0])
+    p.add_argument("--radius-m", type=float, default=0.005,
+                   help="cubes under an action: the tallest point within this distance of its pixel (m)")
+    args = p.parse_args(argv)
+    if not args.radius_m >= 0:
+        p.error(f"--radius-m must be >= 0; got {args.radius_m}")
+    return run_phases(args, lambda files: summarize(
+        a for f in files for a in episode_actions(f, args.radius_m)))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
