@@ -2,6 +2,9 @@
 
 * decision_ms: the actor's path at 224×224 while not holding — preprocess, PushNet + PickNet through the
   InferenceEngine, angle decoding and argmax selection (explore_rate 0).
+* decision_harmonics2_ms: the same path with the stacking recipes' two-harmonic rotation head
+  (model.rotation_harmonics = 2: 5 output channels per net instead of 3, and the two-candidate decode);
+  harmonics2_vs_decision is its ratio to decision_ms.
 * naive_fp32_all_nets_ms: eager fp32 forward of all three nets (plain nn.Module, NCHW, inference mode).
 * rotations16_ms: the authors' approach — the three nets over 16 rotated 320×320 copies of the padded
   input (affine_grid / grid_sample, nearest, as in their code), outputs rotated back, then an argmax.
@@ -24,6 +27,7 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -180,18 +184,26 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
     def decision_exploring() -> object:
         return decide(engine, color, depth, False, 1.0, rng, primitives, exploration)
 
+    # The stacking recipes' rotation head (model.rotation_harmonics = 2: 5 output channels instead of 3).
+    cfg2 = replace(cfg, rotation_harmonics=2)
+    engine2 = InferenceEngine(RoManNet(cfg2, seed=seed).eval(), cfg2)
+
+    def decision_harmonics2() -> object:
+        return decide(engine2, color, depth, False, 0.0, rng, primitives, exploration)
+
     def naive() -> None:
         with torch.inference_mode():
             for net in model.nets.values():
                 net(x)
 
-    for fn in (decision, decision_exploring, naive):
+    for fn in (decision, decision_exploring, decision_harmonics2, naive):
         fn()  # warm-up
-    samples: dict[str, list[float]] = {"decision": [], "explore": [], "naive": []}
+    samples: dict[str, list[float]] = {"decision": [], "explore": [], "harmonics2": [], "naive": []}
     for _ in range(repeats):
         samples["naive"].append(_time_ms(naive))
         samples["decision"].append(_time_ms(decision))
         samples["explore"].append(_time_ms(decision_exploring))
+        samples["harmonics2"].append(_time_ms(decision_harmonics2))
     rotation_samples = [_time_ms(lambda: rotations16_decision(model, color, depth)) for _ in range(rotation_repeats)]
 
     agree = 0
@@ -208,6 +220,8 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
         "decision_ms": decision_ms,
         "decision_min_ms": decision_min,
         "decision_exploring_ms": _summary(samples["explore"])[0],
+        "decision_harmonics2_ms": _summary(samples["harmonics2"])[0],
+        "harmonics2_vs_decision": round(_summary(samples["harmonics2"])[0] / decision_ms, 3),
         "naive_fp32_all_nets_ms": naive_ms,
         "naive_fp32_all_nets_min_ms": naive_min,
         "rotations16_ms": rotations_ms,
