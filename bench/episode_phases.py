@@ -12,13 +12,31 @@ from pathlib import Path
 
 import tomllib
 
-from romannet.common.episode_file import EpisodeFileError, episode_paths
+from romannet.common.episode_file import TRANSITION_TOPIC, EpisodeFileError, episode_paths, read_episode
+from romannet.common.errors import DecodeError
+from romannet.common.wire import TransitionMsg, decode_transition
 
 
 def episode_index(path: Path) -> int:
     """The number in an episode file's name (ep000012.mcap -> 12); -1 for a name without one."""
     digits = re.search(r"(\d+)$", path.stem)
     return int(digits.group(1)) if digits else -1
+
+
+def recorded_transitions(path: Path) -> tuple[str, list[TransitionMsg]]:
+    """An episode file's recorded config (TOML text) and its `/transition` records, decoded and validated.
+
+    Each record is the wire message the actor sent: the action and the heightmaps before and after it, so
+    nothing depends on how the other topics interleave. EpisodeFileError for an unreadable file or record.
+    """
+    episode = read_episode(path, topics=[TRANSITION_TOPIC])
+    out = []
+    for message in episode.of(TRANSITION_TOPIC):
+        try:
+            out.append(decode_transition(message.data))
+        except DecodeError as err:
+            raise EpisodeFileError(path, f"a /transition record does not decode: {err}") from err
+    return episode.config_toml, out
 
 
 def recorded_number(path: Path, config_toml: str, section: str, key: str) -> float:

@@ -25,11 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from romannet.common.episode_file import TRANSITION_TOPIC, EpisodeFileError, read_episode
-from romannet.common.errors import DecodeError
-from romannet.common.wire import decode_transition
-
-from .episode_phases import phase_parser, recorded_number, run_phases
+from .episode_phases import phase_parser, recorded_number, recorded_transitions, run_phases
 
 MAX_GAP_PX = 8  # a pick pixel this close to an object (but off it) is still measured against that object
 ANGLE_BINS_DEG = ((0, 10), (10, 20), (20, 30), (30, 45.01))
@@ -100,18 +96,11 @@ def summarize(picks: Iterable[dict], max_area_cm2: float) -> dict:
 
 def episode_picks(path: Path, min_height_m: float) -> list[dict]:
     """pick_offset of every recorded pick of one episode file, against the heightmap it acted on.
-
-    Reads the `/transition` records (the validated wire messages the actor sent): each holds its action
-    and the depth heightmap before it, so nothing depends on how the other topics interleave.
     """
-    episode = read_episode(path, topics=[TRANSITION_TOPIC])
-    resolution_m = recorded_number(path, episode.config_toml, "workspace", "resolution_m")
+    config_toml, transitions = recorded_transitions(path)
+    resolution_m = recorded_number(path, config_toml, "workspace", "resolution_m")
     out = []
-    for message in episode.of(TRANSITION_TOPIC):
-        try:
-            t = decode_transition(message.data)
-        except DecodeError as err:
-            raise EpisodeFileError(path, f"a /transition record does not decode: {err}") from err
+    for t in transitions:
         if t.action.primitive != "pick":
             continue
         where = pick_offset(t.depth_before, t.action.row, t.action.col, t.action.angle_rad, resolution_m,

@@ -21,12 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from romannet.common.episode_file import TRANSITION_TOPIC, EpisodeFileError, read_episode
-from romannet.common.errors import DecodeError
 from romannet.common.stack import stack_height
-from romannet.common.wire import decode_transition
 
-from .episode_phases import phase_parser, recorded_number, run_phases
+from .episode_phases import phase_parser, recorded_number, recorded_transitions, run_phases
 
 
 def cubes_under(depth_hm: np.ndarray, row: int, col: int, cube_size_m: float, radius_px: int) -> int:
@@ -43,15 +40,11 @@ def cubes_under(depth_hm: np.ndarray, row: int, col: int, cube_size_m: float, ra
 
 def episode_actions(path: Path, radius_m: float) -> list[dict]:
     """{primitive, explored, success, stack, under} of every recorded pick and place of one episode file."""
-    episode = read_episode(path, topics=[TRANSITION_TOPIC])
-    cube_m = recorded_number(path, episode.config_toml, "task", "cube_size_m")
-    radius_px = int(round(radius_m / recorded_number(path, episode.config_toml, "workspace", "resolution_m")))
+    config_toml, transitions = recorded_transitions(path)
+    cube_m = recorded_number(path, config_toml, "task", "cube_size_m")
+    radius_px = int(round(radius_m / recorded_number(path, config_toml, "workspace", "resolution_m")))
     out = []
-    for message in episode.of(TRANSITION_TOPIC):
-        try:
-            t = decode_transition(message.data)
-        except DecodeError as err:
-            raise EpisodeFileError(path, f"a /transition record does not decode: {err}") from err
+    for t in transitions:
         a = t.action
         if a.primitive not in ("pick", "place"):
             continue
