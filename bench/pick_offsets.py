@@ -95,8 +95,7 @@ def summarize(picks: Iterable[dict], max_area_cm2: float) -> dict:
 
 
 def episode_picks(path: Path, min_height_m: float) -> list[dict]:
-    """pick_offset of every recorded pick of one episode file, against the heightmap it acted on.
-    """
+    """pick_offset of every recorded pick of one episode file, against the heightmap it acted on."""
     config_toml, transitions = recorded_transitions(path)
     resolution_m = recorded_number(path, config_toml, "workspace", "resolution_m")
     out = []
