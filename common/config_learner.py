@@ -49,6 +49,10 @@ class LearnerConfig:
     max_grad_norm: float = 0.0
     rotation_loss_weight: float = 1.0  # weight of the rotation head's squared error beside the Q loss
     train_rotation_on_success_only: bool = True  # a failed grasp's angle is not a target to imitate
+    # Where a success's angle trains the rotation head: "pixel" = the executed pixel only; "kernel" = every
+    # pixel of the Q label's support (averaged), the executed angle being the target for the action poses
+    # around it, as GR-ConvNet trains its angle maps over a grasp's region rather than one pixel.
+    rotation_support: Literal["pixel", "kernel"] = "pixel"
     # CPU numerics. "bf16": autocast to bfloat16 for the convolutions (fp32 master weights and loss); it pays
     # only where the CPU computes bf16 natively (AMX / AVX512-BF16), elsewhere it is emulated and several
     # times slower than fp32. "auto": bf16 on such CPUs (and on CUDA), fp32 elsewhere.

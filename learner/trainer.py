@@ -6,7 +6,8 @@ One `train_step(batch)`:
    episode's end make V irrelevant, so its forward pass is skipped).
 2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel.
 3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net; the
-   Huber loss over each label's support (+ the rotation loss at the executed pixel on successes), times
+   Huber loss over each label's support (+ the rotation loss on successes: at the executed pixel, or over
+   the support with learner.rotation_support = "kernel"), times
    the item's importance-sampling weight, averaged over the batch. Only the executed primitives' nets get
    gradients; the others keep `.grad is None`, so SGD skips them entirely (no weight decay, no momentum).
 4. One SGD step; the exploration rate is updated with the paper's L_t (the Huber of the executed pixel's
@@ -270,7 +271,12 @@ class Trainer:
         harmonics = self.model.cfg.rotation_harmonics
         rot_target = torch.tensor([rotation_target(t.action.angle_rad, p, harmonics) for t in ts], device=self.device)
         rot_mask = torch.tensor(train_rot, device=self.device, dtype=torch.float32)
-        rot_losses = ((rot_exec - rot_target) ** 2).sum(dim=1) * rot_mask
+        if cfg.rotation_support == "kernel":  # mean squared error over each label's support
+            sq = ((rot - rot_target[:, :, None, None]) ** 2).sum(dim=1)
+            rot_losses = (sq * support).sum(dim=(1, 2)) / support.sum(dim=(1, 2)).clamp_min(1)
+        else:
+            rot_losses = ((rot_exec - rot_target) ** 2).sum(dim=1)
+        rot_losses = rot_losses * rot_mask
         item_losses = q_losses + cfg.rotation_loss_weight * rot_losses
         with torch.no_grad():
             err = (q_exec - y).detach()

@@ -212,3 +212,44 @@ def test_bootstrap_clip_keeps_the_future_value_in_the_return_range(place_bias, e
             assert t.train_step([(ok, 1.0, 0)]).targets[0] == pytest.approx(0.25 + 0.5 * expected_v)
         else:
             assert (v > 2.0) if place_bias > 0 else (v < 0.0)
+
+
+def test_rotation_support_kernel_trains_the_angle_around_the_executed_pixel():
+    """learner.rotation_support: "pixel" regresses the executed angle at its pixel only; "kernel" over the Q
+    label's support, so the head's angle around the pixel moves toward the target too, not only at it."""
+    from romannet.common.config import RewardConfig, load_config
+    from romannet.common.errors import ConfigError
+    from romannet.learner.targets import q_label, rotation_target
+
+    theta, row, col = 0.6, 12, 14
+    item = (H.transition(primitive="pick", seed=3, row=row, col=col, angle_rad=theta, reward=0.5, done=True),
+            1.0, 0)
+    _, support = q_label((32, 32), row, col, theta, 0.5, 0.0, 0.5, RewardConfig())
+    ring = torch.from_numpy(support.copy())
+    ring[row, col] = False  # the support without the executed pixel
+    target = torch.tensor(rotation_target(theta, "pick"))[:, None]
+
+    def errors(t):
+        t.model.eval()
+        with torch.no_grad():
+            x = preprocess_batch(item[0].color_before[None], item[0].depth_before[None])
+            rot = t.model.nets["pick"](x)[1][0]  # (2, h, w)
+        t.model.train()
+        err = ((rot[:, ring] - target) ** 2).sum(dim=0).mean()
+        return float(err), float(((rot[:, row, col] - target[:, 0]) ** 2).sum())
+
+    results = {}
+    for where in ("pixel", "kernel"):
+        t = H.trainer(rotation_support=where, lr=0.005, loss_reduction="mean")
+        before = errors(t)
+        for _ in range(15):
+            t.train_step([item])
+        results[where] = (before, errors(t))
+    (ring0, _), (ring_pixel, at_pixel) = results["pixel"]
+    (ring0k, _), (ring_kernel, at_kernel) = results["kernel"]
+    assert ring0 == pytest.approx(ring0k)  # same seed, same start
+    assert ring_kernel < 0.5 * ring0 and ring_kernel < 0.7 * ring_pixel, results
+    assert at_kernel < 0.75 * results["kernel"][0][1], results  # the executed pixel learns too
+    assert at_pixel < 0.25 * results["pixel"][0][1] and ring_pixel > 0.8 * ring0, results  # "pixel": there only
+    with pytest.raises(ConfigError, match="'pixel', 'kernel'"):
+        load_config(overrides=['learner.rotation_support="everywhere"'])
