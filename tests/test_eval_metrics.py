@@ -334,6 +334,9 @@ def test_stack_actions_summary_counts_picks_off_and_places_on_a_stack_top():
     assert out["pick"]["greedy"]["stack 2, on 2"] == {"attempts": 2, "succeeded": 1}
     assert out["pick"]["explored"] == {"stack 2, on 2": {"attempts": 1, "succeeded": 1}}
     assert out["place"]["greedy"]["stack 3, on 1"] == {"attempts": 1, "succeeded": 0}
+    # a patch maximum a speckle above the median-filtered stack height is still the stack's top
+    speckle = summarize([a("pick", 2, 3, True)])["while a stack of 2+ stood (greedy)"]
+    assert (speckle["picks at a stack top"], speckle["cubes taken off a stack"], speckle["picks elsewhere"]) == (1, 1, 0)
 
 
 def test_stack_actions_reads_a_stacking_run_from_its_recorded_transitions(tmp_path, capsys):
