@@ -45,7 +45,7 @@ def _scene_with_cubes(env: SimEnv, cubes: list[tuple[float, float, float, float]
     env.scene.settle(240)
     env.obs = env._observe()
     env.depth_start = env.obs.depth_hm
-    env.progress = env._progress(env.obs.depth_hm)
+    env.progress = env._progress(env.obs.depth_hm, env.stack_height_hm(env.obs.depth_hm))
 
 
 @pytest.fixture(scope="module")

@@ -99,7 +99,7 @@ class SimEnv:
         self._episode_over = False
         self.obs = self._observe()
         self.depth_start = self.obs.depth_hm
-        self.progress = self._progress(self.obs.depth_hm)
+        self.progress = self._progress(self.obs.depth_hm, self.stack_height_hm(self.obs.depth_hm))
         return self.obs
 
     def close(self) -> None:
@@ -127,9 +127,10 @@ class SimEnv:
         self.last_observe_s = time.perf_counter() - t0  # wall-clock, for the benchmark only
         return Observation(color_hm, depth_hm, self.holding, frame.color, frame.depth_m)
 
-    def _progress(self, depth_hm: np.ndarray) -> float:
+    def _progress(self, depth_hm: np.ndarray, height_hm: int) -> float:
+        """Task progress of a heightmap; height_hm: its stack_height_hm (measured once per observation)."""
         if self.task_def.progress == "stacking":
-            return stacking_progress(self.stack_height_hm(depth_hm), self.task.goal_stack_height)
+            return stacking_progress(height_hm, self.task.goal_stack_height)
         return clutter_progress(depth_hm, self.depth_start, self.reward_cfg.occupied_height_m)
 
     def stack_height_hm(self, depth_hm: np.ndarray) -> int:
@@ -180,10 +181,11 @@ class SimEnv:
 
         unstable = result.unstable or self.scene.instability()
         self.obs = self._observe()
+        height_hm = self.stack_height_hm(self.obs.depth_hm)  # once per step: place check, progress, info
         if action.primitive == "place" and success:
-            success = self.stack_height_hm(self.obs.depth_hm) > self.stack_height_hm(hm_before)
+            success = height_hm > self.stack_height_hm(hm_before)
             detail = "" if success else "stack_not_higher"
-        p_after = self._progress(self.obs.depth_hm)
+        p_after = self._progress(self.obs.depth_hm, height_hm)
         self.progress = p_after
         reversed_ = progress_reversed(p_before, p_after, self.reward_cfg.progress_tolerance)
         reward = task_progress_reward(action.primitive, success, p_after, self.reward_cfg, reversed=reversed_)
@@ -197,7 +199,7 @@ class SimEnv:
         info: dict[str, float | int | str | bool] = {
             "seed": self.seed, "step": self.steps, "physics_steps": result.steps,
             "objects_in_workspace": in_workspace,
-            "stack_height_gt": height_gt, "stack_height_hm": self.stack_height_hm(self.obs.depth_hm),
+            "stack_height_gt": height_gt, "stack_height_hm": height_hm,
             "moved_m": result.moved_m, "consecutive_failures": self.consecutive_failures,
             "unstable": unstable,
         }
