@@ -117,6 +117,26 @@ def rotation_target(angle_rad: float, primitive: str, harmonics: int = 1) -> tup
     return encode_angle(float(angle_rad), primitive, harmonics)
 
 
+def rotation_sign_weight(success: bool, success_only: bool, failure_weight: float) -> tuple[float, float]:
+    """(sign, weight) of one action's rotation target: the head regresses sign * rotation_target, weighted.
+
+    A success: (+1, 1), the executed angle is imitated. A failure: with success_only off, (+1, 1) (imitated
+    too); with it on, (-1, failure_weight): the target is the opposite of the executed angle's encoding
+    (for a pick's second harmonic, 4 theta + pi: the angle 45 degrees away), 0 = not trained (the default).
+    Why: the head's expected target is then E[(s - b) e^{i k theta}] / E[...] with b = w / (1 + w), i.e. it
+    points toward angles that succeed more often than b and away from those that succeed less, whichever
+    angles the policy tried; imitating successes alone (b = 0) points toward the policy's own angles even
+    where they succeed rarely. Must be 0 when success_only is off (the two would contradict).
+    """
+    if not (math.isfinite(failure_weight) and failure_weight >= 0.0):
+        raise ValueError(f"failure_weight = {failure_weight!r} must be a non-negative number")
+    if failure_weight and not success_only:
+        raise ValueError("a failure weight needs success_only: failures are either imitated or avoided")
+    if success or not success_only:
+        return 1.0, 1.0
+    return -1.0, float(failure_weight)
+
+
 def opposite_orientation(angle_rad: float) -> float:
     """theta + pi wrapped to (-pi, pi]: the same grasp/place for a parallel-jaw gripper."""
     a = math.remainder(angle_rad + math.pi, 2 * math.pi)

@@ -6,8 +6,9 @@ One `train_step(batch)`:
    episode's end make V irrelevant, so its forward pass is skipped).
 2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel.
 3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net; the
-   Huber loss over each label's support (+ the rotation loss on successes: at the executed pixel, or over
-   the support with learner.rotation_support = "kernel"), times
+   Huber loss over each label's support (+ the rotation loss on successes, and on failures toward the
+   opposite angle with learner.rotation_failure_weight: at the executed pixel, or over the support with
+   learner.rotation_support = "kernel"), times
    the item's importance-sampling weight, averaged over the batch. Only the executed primitives' nets get
    gradients; the others keep `.grad is None`, so SGD skips them entirely (no weight decay, no momentum).
 4. One SGD step; the exploration rate is updated with the paper's L_t (the Huber of the executed pixel's
@@ -51,6 +52,7 @@ from .targets import (
     huber,
     q_label,
     return_range,
+    rotation_sign_weight,
     rotation_target,
     support_loss,
     td_target,
@@ -266,11 +268,12 @@ class Trainer:
         is_w = torch.tensor([items[i][1] for i in idx], device=self.device, dtype=torch.float32)
         q_losses = torch.stack([support_loss(q[k], label[k], support[k], cfg.huber_delta, cfg.loss_reduction)
                                 for k in range(len(ts))])
-        train_rot = [cfg.rotation_loss_weight > 0 and (t.success or not cfg.train_rotation_on_success_only)
-                     for t in ts]
+        sign_weight = [rotation_sign_weight(t.success, cfg.train_rotation_on_success_only,
+                                            cfg.rotation_failure_weight) for t in ts]
         harmonics = self.model.cfg.rotation_harmonics
-        rot_target = torch.tensor([rotation_target(t.action.angle_rad, p, harmonics) for t in ts], device=self.device)
-        rot_mask = torch.tensor(train_rot, device=self.device, dtype=torch.float32)
+        rot_target = torch.tensor([[sign * v for v in rotation_target(t.action.angle_rad, p, harmonics)]
+                                   for t, (sign, _) in zip(ts, sign_weight, strict=True)], device=self.device)
+        rot_mask = torch.tensor([w for _, w in sign_weight], device=self.device, dtype=torch.float32)
         if cfg.rotation_support == "kernel":  # mean squared error over each label's support
             sq = ((rot - rot_target[:, :, None, None]) ** 2).sum(dim=1)
             rot_losses = (sq * support).sum(dim=(1, 2)) / support.sum(dim=(1, 2)).clamp_min(1)
