@@ -268,6 +268,10 @@ def test_pick_offset_summary_splits_greedy_explored_and_leaves_stacks_out_of_the
     assert greedy["median_abs_along_cm_failed"] == 2.3 and greedy["median_abs_along_cm_succeeded"] == 0.4
     assert greedy["by_face_angle"]["0-10"] == {"picks": 2, "succeeded": 0}
     assert greedy["by_face_angle"]["30-45"] == {"picks": 1, "succeeded": 1}
+    assert greedy["mean_cos4_face_angle_picks"] == pytest.approx(
+        (2 * math.cos(math.radians(20)) + math.cos(math.radians(140))) / 3, abs=1e-3)
+    assert greedy["mean_cos4_face_angle_succeeded"] == pytest.approx(math.cos(math.radians(140)), abs=1e-3)
+    assert explored["mean_cos4_face_angle_picks"] == pytest.approx(math.cos(math.radians(20)), abs=1e-3)
     assert (explored["picks"], explored["succeeded"], explored["median_abs_along_cm_failed"]) == (1, 1, None)
 
 
