@@ -59,6 +59,10 @@ class LearnerConfig:
     # pixel of the Q label's support (averaged), the executed angle being the target for the action poses
     # around it, as GR-ConvNet trains its angle maps over a grasp's region rather than one pixel.
     rotation_support: Literal["pixel", "kernel"] = "pixel"
+    # Train each sampled transition turned by a random yaw about its executed pixel, the action's angle turned
+    # with it (learner/augment.py): the same pick at every orientation of the scene, so the rotation head
+    # learns the angle relative to the object rather than the yaws the objects happened to have.
+    augment_rotation: bool = False
     # CPU numerics. "bf16": autocast to bfloat16 for the convolutions (fp32 master weights and loss); it pays
     # only where the CPU computes bf16 natively (AMX / AVX512-BF16), elsewhere it is emulated and several
     # times slower than fp32. "auto": bf16 on such CPUs (and on CUDA), fp32 elsewhere.

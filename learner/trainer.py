@@ -8,9 +8,10 @@ One `train_step(batch)`:
 3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net; the
    Huber loss over each label's support (+ the rotation loss on successes, and on failures toward the
    opposite angle with learner.rotation_failure_weight: at the executed pixel, or over the support with
-   learner.rotation_support = "kernel"), times
-   the item's importance-sampling weight, averaged over the batch. Only the executed primitives' nets get
-   gradients; the others keep `.grad is None`, so SGD skips them entirely (no weight decay, no momentum).
+   learner.rotation_support = "kernel"), times the item's importance-sampling weight, averaged over the
+   batch (with learner.augment_rotation each item is first turned by a random yaw about its executed pixel,
+   learner/augment.py). Only the executed primitives' nets get gradients; the others keep `.grad is None`,
+   so SGD skips them entirely (no weight decay, no momentum).
 4. One SGD step; the exploration rate is updated with the paper's L_t (the Huber of the executed pixel's
    TD error, averaged over the batch).
 
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import time
 import types
 from collections import defaultdict
@@ -46,6 +48,7 @@ from romannet.common.model import RoManNet, preprocess_batch, state_dict_to_tens
 from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 
+from .augment import rotated_transition
 from .targets import (
     bootstrap_value,
     clip_value,
@@ -139,6 +142,7 @@ class Trainer:
         self.exploration = ExplorationRate(self.exploration_cfg)
         self.updates = 0
         self.primitives = task_cfg.primitives
+        self.augment_rng = np.random.default_rng(self.seed)
 
     # ------------------------------------------------------------------------------------------ helpers
     def _autocast(self):
@@ -246,6 +250,8 @@ class Trainer:
         """IS-weighted summed loss of one primitive's items (one forward pass); fills the per-item outputs."""
         cfg = self.cfg
         ts = [items[i][0] for i in idx]
+        if cfg.augment_rotation:  # each item at a random yaw about its executed pixel
+            ts = [rotated_transition(t, float(self.augment_rng.uniform(-math.pi, math.pi))) for t in ts]
         h, w = ts[0].shape
         labels, supports = [], []
         for t, i in zip(ts, idx, strict=True):
