@@ -22,6 +22,7 @@ import math
 import cv2
 import numpy as np
 
+from romannet.common.action import PRIMITIVES
 from romannet.common.wire_messages import TransitionMsg
 
 
@@ -34,6 +35,13 @@ def rotate_about(image: np.ndarray, row: int, col: int, phi_rad: float, fill: fl
     m = cv2.getRotationMatrix2D((float(col), float(row)), -math.degrees(phi_rad), 1.0)
     return cv2.warpAffine(image, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                           borderValue=fill)
+
+
+def augment_yaws(seed: int, update: int, primitive: str, n: int) -> list[float]:
+    """n yaws, uniform in [-pi, pi), for the items of one primitive in the update numbered `update`: drawn
+    from (seed, update, primitive) alone, so a resumed learner turns its items as the uninterrupted one would."""
+    rng = np.random.default_rng([seed, update, PRIMITIVES.index(primitive)])
+    return [float(v) for v in rng.uniform(-math.pi, math.pi, n)]
 
 
 def turned_angle(angle_rad: float, phi_rad: float) -> float:

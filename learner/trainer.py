@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import math
 import time
 import types
 from collections import defaultdict
@@ -48,7 +47,7 @@ from romannet.common.model import RoManNet, preprocess_batch, state_dict_to_tens
 from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 
-from .augment import rotated_transition
+from .augment import augment_yaws, rotated_transition
 from .targets import (
     bootstrap_value,
     clip_value,
@@ -142,7 +141,6 @@ class Trainer:
         self.exploration = ExplorationRate(self.exploration_cfg)
         self.updates = 0
         self.primitives = task_cfg.primitives
-        self.augment_rng = np.random.default_rng(self.seed)
 
     # ------------------------------------------------------------------------------------------ helpers
     def _autocast(self):
@@ -251,7 +249,8 @@ class Trainer:
         cfg = self.cfg
         ts = [items[i][0] for i in idx]
         if cfg.augment_rotation:  # each item at a random yaw about its executed pixel
-            ts = [rotated_transition(t, float(self.augment_rng.uniform(-math.pi, math.pi))) for t in ts]
+            phis = augment_yaws(self.seed, self.updates, p, len(ts))
+            ts = [rotated_transition(t, phi) for t, phi in zip(ts, phis, strict=True)]
         h, w = ts[0].shape
         labels, supports = [], []
         for t, i in zip(ts, idx, strict=True):

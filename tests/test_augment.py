@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from romannet.bench.pick_offsets import pick_offset
-from romannet.learner.augment import rotate_about, rotated_transition, turned_angle
+from romannet.learner.augment import augment_yaws, rotate_about, rotated_transition, turned_angle
 
 SIZE = 48
 RES_M = 0.003  # 3 mm pixels: a 5 cm cube is ~16 px
@@ -65,13 +65,16 @@ def test_a_turned_pick_is_the_same_pick_relative_to_the_cube(phi_deg):
 
 def test_the_trainer_trains_each_item_turned_by_its_seeded_random_yaw():
     """With augment_rotation, train_step on a transition is exactly train_step without it on that transition
-    turned by the angle the trainer's generator (seeded by the learner's seed) draws; the label's pixel stays."""
+    turned by augment_yaws(seed, update, primitive): the same turn after a resume, a new one every update."""
     color, depth = cube_scene(0.2)
     item = (H.transition(size=SIZE, row=23, col=27, angle_rad=0.4, color_before=color, depth_before=depth),
             1.0, 0)
     augmented = H.trainer(augment_rotation=True, seed=4)
     plain = H.trainer(augment_rotation=False, seed=4)
-    phi = float(np.random.default_rng(4).uniform(-math.pi, math.pi))
+    phi = augment_yaws(4, 0, "pick", 1)[0]
+    assert augment_yaws(4, 0, "pick", 3)[0] == phi and len(set(augment_yaws(4, 0, "pick", 3))) == 3
+    assert augment_yaws(4, 1, "pick", 1)[0] != phi and augment_yaws(4, 0, "place", 1)[0] != phi
+    assert all(-math.pi <= v < math.pi for v in augment_yaws(0, 7, "push", 50))
     a = augmented.train_step([item])
     b = plain.train_step([(rotated_transition(item[0], phi), 1.0, 0)])
     assert a.loss == pytest.approx(b.loss, rel=1e-5) and a.td_errors == pytest.approx(b.td_errors, rel=1e-5)
