@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -367,3 +368,60 @@ def test_stack_actions_reads_a_stacking_run_from_its_recorded_transitions(tmp_pa
     assert main([str(tmp_path / "junk.mcap")]) == 2
     with pytest.raises(SystemExit):
         main([str(tmp_path / "run"), "--radius-m", "-1"])
+
+
+def test_lone_cube_centres_and_spread():
+    from romannet.bench.angle_probe import lone_cube_centres, spread
+
+    depth = np.zeros((40, 40), np.float32)
+    depth[2:7, 2:7] = 0.05  # a lone cube (5 x 5 px of 1 cm: 25 cm^2)
+    depth[20:25, 2:7] = 0.10  # a stack of two: the same footprint
+    depth[20:25, 20:30] = 0.05  # two touching cubes: twice the footprint, left out
+    depth[32, 32] = 0.05  # a speck
+    depth[10, 10] = np.nan
+    assert lone_cube_centres(depth, 0.01, 0.05) == [(4, 4), (22, 4)]
+    files = [Path(f"ep{i:06d}.mcap") for i in range(10)]
+    assert spread(files, 3) == [files[0], files[4], files[9]]  # round(4.5) = 4
+    assert spread(files, 20) == files and spread(files, 1) == [files[0]]
+
+
+@pytest.mark.parametrize("head_deg, faces_ok", [(0.0, True), (45.0, False)])
+def test_angle_probe_reads_the_heads_angle_at_cubes_and_at_trained_picks(tmp_path, capsys, head_deg, faces_ok):
+    """End to end on a recorder-written stacking episode and a learner checkpoint whose pick rotation head
+    answers one angle everywhere: square to the (axis-aligned) cubes and equal to the executed picks' 0 deg,
+    or on their diagonals; no checkpoint: exit 2."""
+    import json
+
+    import torch
+    from _episodes import OVERRIDES, STACK_CUBES, record_stacking_episode
+
+    from romannet.bench.angle_probe import main
+    from romannet.common.config import load_config
+    from romannet.common.configbase import dumps_toml
+    from romannet.common.model import encode_angle
+    from romannet.learner.checkpoint import save_checkpoint
+    from romannet.learner.trainer import Trainer
+
+    run = tmp_path / "run"
+    (run / "episodes" / "a0").mkdir(parents=True)
+    record_stacking_episode(run / "episodes" / "a0" / "ep000000.mcap")
+    assert main([str(run)]) == 2 and "no checkpoint" in capsys.readouterr().err
+    cfg = load_config(None, [*OVERRIDES, 'task.kind="stacking"', "model.rotation_harmonics=2"])
+    (run / "config.toml").write_text(dumps_toml(cfg))
+    trainer = Trainer(cfg.model, cfg.learner, cfg.reward, cfg.task, seed=0)
+    head = trainer.model.nets["pick"].rot_head
+    with torch.no_grad():
+        head.weight.zero_()
+        head.bias.copy_(torch.tensor(encode_angle(math.radians(head_deg), "pick", 2)))
+    save_checkpoint(trainer, run)
+    assert main([str(run), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    cubes = out["lone cubes, first states: head angle to the faces"]
+    picks = out["successful picks: head angle to the executed angle (mod 90 deg)"]
+    assert out["episodes"] == 1 and cubes["count"] == len(STACK_CUBES) and picks["count"] == 2
+    if faces_ok:
+        assert cubes["mean_cos4"] == pytest.approx(1.0) and cubes["within_10deg"] == len(STACK_CUBES)
+        assert picks["median_deg"] == pytest.approx(0.0, abs=0.1) and picks["within_10deg"] == 2
+    else:
+        assert cubes["mean_cos4"] == pytest.approx(-1.0) and cubes["beyond_30deg"] == len(STACK_CUBES)
+        assert picks["median_deg"] == pytest.approx(45.0, abs=0.1) and picks["beyond_30deg"] == 2
