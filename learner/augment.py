@@ -26,7 +26,8 @@ from romannet.common.action import PRIMITIVES
 from romannet.common.wire_messages import TransitionMsg
 
 
-def rotate_about(image: np.ndarray, row: int, col: int, phi_rad: float, fill: float | tuple[float, ...]) -> np.ndarray:
+def rotate_about(image: np.ndarray, row: int, col: int, phi_rad: float,
+                 fill: float | tuple[float, ...]) -> np.ndarray:
     """image (h, w) or (h, w, c) turned by phi about pixel (row, col): a point at (col + dx, row + dy) moves to
     (col + dx cos phi - dy sin phi, row + dx sin phi + dy cos phi); uncovered pixels get `fill`. Bilinear;
     same dtype and shape."""
