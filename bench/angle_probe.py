@@ -9,8 +9,10 @@ Two questions about the head that chooses a pick's angle, asked of recorded scen
   cos 4(angle): 1 = square to every cube, -1 = on every diagonal, 0 = no preference.
 - At the executed pixel of the recorded successful picks (what the head was trained toward), how far is its
   angle from the executed one, modulo 90 deg (a cube's symmetry; mean cos 4(difference) 1 = the same angle)?
-  Small here and large above = the head fits the picks it was trained on and does not carry that to other
-  cubes.
+  Greedy and explored picks apart: a greedy pick's angle came from this head (at the weights it acted on),
+  so agreement there is partly by construction; an explored pick's angle was drawn at random half the time
+  (exploration.random_angle_prob), so agreement there is what the head learned from it. Small here and large
+  above = the head fits the picks it was trained on and does not carry that to other cubes.
 Episodes probed: up to --episodes, spread evenly over the run. Prints one JSON object (or a line per part).
 """
 
@@ -72,7 +74,7 @@ def _angles_summary(deg: list[float], within: str, beyond: str) -> dict:
 def probe(model: RoManNet, files: list[Path], min_height_m: float) -> dict:
     """The two parts of the module docstring over the given episode files."""
     to_faces: list[float] = []
-    to_executed: list[float] = []
+    to_executed: dict[bool, list[float]] = {False: [], True: []}  # by explored
     for path in files:
         config_toml, transitions = recorded_transitions(path)
         if not transitions:
@@ -87,12 +89,15 @@ def probe(model: RoManNet, files: list[Path], min_height_m: float) -> dict:
         for t in transitions:
             if t.action.primitive == "pick" and t.success:
                 a = float(pick_angle_map(model, t)[t.action.row, t.action.col])
-                to_executed.append(abs(math.degrees(math.remainder(a - t.action.angle_rad, math.pi / 2))))
+                to_executed[bool(t.action.explored)].append(
+                    abs(math.degrees(math.remainder(a - t.action.angle_rad, math.pi / 2))))
     return {"episodes": len(files),
             "lone cubes, first states: head angle to the faces":
                 _angles_summary(to_faces, "within_10deg", "beyond_30deg"),
-            "successful picks: head angle to the executed angle (mod 90 deg)":
-                _angles_summary(to_executed, "within_10deg", "beyond_30deg")}
+            "successful greedy picks: head angle to the executed angle (mod 90 deg)":
+                _angles_summary(to_executed[False], "within_10deg", "beyond_30deg"),
+            "successful explored picks: head angle to the executed angle (mod 90 deg)":
+                _angles_summary(to_executed[True], "within_10deg", "beyond_30deg")}
 
 
 def spread(files: list[Path], n: int) -> list[Path]:

@@ -417,7 +417,8 @@ def test_angle_probe_reads_the_heads_angle_at_cubes_and_at_trained_picks(tmp_pat
     assert main([str(run), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     cubes = out["lone cubes, first states: head angle to the faces"]
-    picks = out["successful picks: head angle to the executed angle (mod 90 deg)"]
+    picks = out["successful greedy picks: head angle to the executed angle (mod 90 deg)"]
+    assert out["successful explored picks: head angle to the executed angle (mod 90 deg)"]["count"] == 0
     assert out["episodes"] == 1 and cubes["count"] == len(STACK_CUBES) and picks["count"] == 2
     if faces_ok:
         assert cubes["mean_cos4"] == pytest.approx(1.0) and cubes["within_10deg"] == len(STACK_CUBES)
