@@ -37,7 +37,7 @@ from romannet.evaluate.runner import load_model_tensors
 from romannet.learner.checkpoint import latest_checkpoint
 
 from .episode_phases import recorded_number, recorded_transitions
-from .pick_offsets import _mean_cos4, pick_offset
+from .pick_offsets import mean_cos4, pick_offset
 
 
 def lone_cube_centres(depth_hm: np.ndarray, resolution_m: float, cube_m: float,
@@ -66,7 +66,7 @@ def pick_angle_map(model: RoManNet, t: TransitionMsg) -> np.ndarray:
 
 
 def _angles_summary(deg: list[float], within: str, beyond: str) -> dict:
-    return {"count": len(deg), "mean_cos4": _mean_cos4(deg),
+    return {"count": len(deg), "mean_cos4": mean_cos4(deg),
             "median_deg": round(statistics.median(deg), 1) if deg else None,
             within: sum(d < 10.0 for d in deg), beyond: sum(d > 30.0 for d in deg)}
 

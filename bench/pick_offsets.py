@@ -11,8 +11,9 @@ minimum-area rectangle, and reports per training phase and for greedy and explor
 picks hit an object, how many succeeded, and the median |offset| along and across the closing axis and the
 median angle between the closing axis and the object's faces (0-45 degrees), for successful and failed
 picks, and the mean cos 4(angle to the faces) of all and of the successful picks (1 = square to the faces,
--1 = on the diagonal, 0 = no preference). Blobs larger than `--max-area-cm2` (a stack, touching objects) are counted but left out of the
-medians, since their centre is not one object's. Prints one JSON object (or a line per phase).
+-1 = on the diagonal, 0 = no preference). Blobs larger than `--max-area-cm2` (a stack, touching objects)
+are counted but left out of the medians, since their centre is not one object's. Prints one JSON object
+(or a line per phase).
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ def _median(values: Sequence[float], digits: int) -> float | None:
     return round(statistics.median(values), digits) if values else None
 
 
-def _mean_cos4(face_angles_deg: Sequence[float]) -> float | None:
+def mean_cos4(face_angles_deg: Sequence[float]) -> float | None:
     """Mean cos 4a of the angles a to the faces: 1 = every closing axis square to the faces, -1 = all on the
     diagonal (45 deg), 0 = no preference (uniform angles)."""
     if not face_angles_deg:
@@ -96,7 +97,7 @@ def summarize(picks: Iterable[dict], max_area_cm2: float) -> dict:
             row[f"median_face_angle_deg_{outcome}"] = _median([p["face_angle_deg"] for p in sel], 1)
         row["within_1cm_along"] = sum(abs(p["along_m"]) < 0.01 for p in group)
         for outcome, sel in (("picks", group), ("succeeded", [p for p in group if p["success"]])):
-            row[f"mean_cos4_face_angle_{outcome}"] = _mean_cos4([p["face_angle_deg"] for p in sel])
+            row[f"mean_cos4_face_angle_{outcome}"] = mean_cos4([p["face_angle_deg"] for p in sel])
         row["by_face_angle"] = {f"{lo}-{min(hi, 45):g}": {
             "picks": sum(lo <= p["face_angle_deg"] < hi for p in group),
             "succeeded": sum(lo <= p["face_angle_deg"] < hi and bool(p["success"]) for p in group)}
