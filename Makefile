@@ -22,7 +22,7 @@ install: $(STAMP)
 # The whole fleet on this machine (replay server, learner, 2 simulated actors) until Ctrl-C; results in
 # runs/<name>/. Extra flags go in ARGS, e.g. `make run ARGS="--max-actions 2000 --robot gripper"`.
 run: $(STAMP)
-	$(VENV)/bin/romannet up --actors 2 $(ARGS)
+	$(VENV)/bin/romannet up $(ARGS)
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .

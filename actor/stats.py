@@ -62,6 +62,7 @@ class ActorStats:
     pause_reason: str = ""
     last_done_reason: str = ""
     state: str = "starting"
+    started_ns: int = field(default_factory=time.time_ns)  # with the pid, names this process in a run's ledger
 
     def record_action(self, primitive: str, success: bool, policy_version: int) -> None:
         """Count one executed action chosen by weights policy_version."""
@@ -87,7 +88,7 @@ class ActorStats:
         eff = self.efficiencies
         return {
             "actor_id": self.actor_id, "run_id": self.run_id, "pid": os.getpid(), "state": self.state,
-            "updated_ns": time.time_ns(),
+            "started_ns": self.started_ns, "updated_ns": time.time_ns(),
             "actions": self.actions, "episodes": self.episodes, "episode_id": self.episode_id,
             "episode_step": self.episode_step, "picks": self.picks, "successful_picks": self.successful_picks,
             "pick_success_rate": self.successful_picks / self.picks if self.picks else None,

@@ -16,6 +16,7 @@ import csv
 import io
 import json
 import logging
+import os
 import sys
 import time
 from collections import deque
@@ -81,40 +82,96 @@ _COUNTERS = ("actions", "episodes", "picks", "successful_picks", "completed_epis
              "accepted", "duplicates", "rejected")
 
 
+def process_identity(status: dict[str, Any]) -> tuple[Any, Any]:
+    """Which process wrote a status: (pid, started_ns). A pid alone comes back after a reboot; status files
+    from before started_ns existed give (pid, None)."""
+    return status.get("pid"), status.get("started_ns")
+
+
 class ActorLedger:
-    """Totals per actor id across restarts of its process.
+    """Totals per actor id across the processes of a run: restarts within one launch and earlier launches.
 
     An actor's status.json counts the life of one process; when the supervisor restarts a crashed actor,
     `retire(actor_id, status)` banks the dead process's last counts, and `merged()` adds them to whatever
-    the new process reports. A status still written by a retired pid counts as nothing new (the new
-    process has not written its own yet).
+    the new process reports. A status still written by a retired process counts as nothing new (the new
+    process has not written its own yet). With a `path` (`<run>/actors/ledger.json`) every retire is saved
+    atomically, so `romannet up --resume` starts from the run's totals: `load()` reads the file and the
+    launcher retires the statuses the last launch's actors left. `mark_start()` remembers the totals when
+    a launch starts (`this_start()` is what its own processes did).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, path: Path | None = None) -> None:
+        self.path = path
         self.carried: dict[str, dict[str, int]] = {}
-        self._retired_pids: set[int] = set()
+        self._retired: set[tuple[Any, Any]] = set()
+        self._at_start: dict[str, int] = {}
+
+    @classmethod
+    def load(cls, path: Path) -> ActorLedger:
+        """The ledger saved at path (an empty one if there is none yet); RomannetError if it is unreadable."""
+        from romannet.common.errors import RomannetError
+
+        ledger = cls(path)
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            return ledger
+        except (OSError, ValueError) as exc:
+            raise RomannetError(f"{path} cannot be read ({exc}): it holds the run's action counts from earlier "
+                                "launches; move it away to count them from zero") from None
+        try:
+            ledger.carried = {str(aid): {k: int(bank.get(k, 0)) for k in _COUNTERS}
+                              for aid, bank in data["carried"].items()}
+            ledger._retired = {(pid, started) for pid, started in data["retired"]}
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise RomannetError(f"{path} is not a ledger ({type(exc).__name__}: {exc}): move it away to count "
+                                "the run's earlier actions from zero") from None
+        return ledger
+
+    def save(self) -> None:
+        if self.path is None:
+            return
+        data = {"carried": self.carried, "retired": sorted(self._retired, key=repr)}
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        tmp.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+        os.replace(tmp, self.path)
 
     def retire(self, actor_id: str, status: dict[str, Any] | None) -> None:
-        if not status or status.get("pid") in self._retired_pids:
+        if not status or process_identity(status) in self._retired:
             return
         bank = self.carried.setdefault(actor_id, dict.fromkeys(_COUNTERS, 0))
         for key in _COUNTERS:
             bank[key] += int(_num(status.get(key)) or 0)
         if isinstance(status.get("pid"), int):
-            self._retired_pids.add(status["pid"])
+            self._retired.add(process_identity(status))
+        self.save()
 
     def merged(self, actor_id: str, status: dict[str, Any]) -> dict[str, Any]:
         bank = self.carried.get(actor_id)
         if bank is None:
             return status
         out = dict(status)
-        stale = status.get("pid") in self._retired_pids
+        stale = process_identity(status) in self._retired
         for key in _COUNTERS:
             out[key] = bank[key] + (0 if stale else int(_num(status.get(key)) or 0))
         return out
 
     def actions(self, actor_id: str) -> int:
         return self.carried.get(actor_id, {}).get("actions", 0)
+
+    def total_actions(self) -> int:
+        return sum(bank.get("actions", 0) for bank in self.carried.values())
+
+    def mark_start(self) -> None:
+        self._at_start = {aid: bank.get("actions", 0) for aid, bank in self.carried.items()}
+
+    def this_start(self, actor_id: str) -> int:
+        """Actions of actor_id's retired processes since mark_start (its share's part already done)."""
+        return self.actions(actor_id) - self._at_start.get(actor_id, 0)
+
+    def start_total(self) -> int:
+        return sum(self._at_start.values())
 
 
 class MovingRate:

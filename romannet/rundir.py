@@ -2,9 +2,10 @@
 
 `prepare_run(args)` creates `<runs-dir>/<name>/` and writes its config.toml before any child starts (every
 child reads that file). A fresh run refuses a directory that holds anything; `--resume` reuses the saved
-config.toml (plus --set and flag overrides), refuses to change the workspace (the replay holds
-transitions of that size) or to share the directory with a launcher that is still running, and warns
-about actors' spools that the requested --actors would leave unsent.
+config.toml (plus --set and flag overrides) and, unless they are given again, the last launch's --actors
+and --max-actions (launch.json); it refuses to change the workspace (the replay holds transitions of that
+size) or to share the directory with a launcher that is still running, and warns about actors' spools
+that the requested --actors would leave unsent.
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ if TYPE_CHECKING:
     from romannet.common.config import Config
 
 log = logging.getLogger("romannet.up")
+
+LAUNCH_FILE = "launch.json"  # the last launch's --actors and --max-actions, the defaults of a --resume
 
 
 def _flag_overrides(args: argparse.Namespace) -> list[str]:
@@ -43,6 +46,11 @@ def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
     from romannet.common.config import load_config
     from romannet.common.configbase import write_toml
 
+    name = args.name or time.strftime("run-%Y%m%d-%H%M%S")
+    if not all(c.isalnum() or c in "-_" for c in name) or not name:
+        raise RomannetError(f"--name {name!r}: use letters, digits, '-' and '_' (it is the run id in Zenoh keys)")
+    run_dir = Path(args.runs_dir) / name
+    _fill_launch_defaults(args, run_dir)
     recordings = getattr(args, "from_recordings", [])
     if args.actors < (0 if recordings else 1):
         raise RomannetError(f"--actors {args.actors}: at least one actor is needed (or 0 with --from-recordings)")
@@ -54,10 +62,6 @@ def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
     if args.max_actions < 0 or (0 < args.max_actions < args.actors):
         raise RomannetError(f"--max-actions {args.max_actions}: use 0 (no limit) or at least one action per "
                             f"actor (>= {args.actors})")
-    name = args.name or time.strftime("run-%Y%m%d-%H%M%S")
-    if not all(c.isalnum() or c in "-_" for c in name) or not name:
-        raise RomannetError(f"--name {name!r}: use letters, digits, '-' and '_' (it is the run id in Zenoh keys)")
-    run_dir = Path(args.runs_dir) / name
     saved = run_dir / "config.toml"
     overrides = [*args.overrides, *_flag_overrides(args), f'run_id="{name}"']
     if args.resume:
@@ -78,7 +82,38 @@ def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
         cfg = load_config(args.config, overrides)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_toml(cfg, saved)
+    _write_json(run_dir / LAUNCH_FILE, {"actors": args.actors, "max_actions": args.max_actions})
     return run_dir, cfg
+
+
+def _fill_launch_defaults(args: argparse.Namespace, run_dir: Path) -> None:
+    """--actors / --max-actions not given: the run's last launch's (launch.json) with --resume, else 2 / 0."""
+    last: dict[str, object] = {}
+    if args.resume and (run_dir / LAUNCH_FILE).is_file():
+        try:
+            last = json.loads((run_dir / LAUNCH_FILE).read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise RomannetError(f"{run_dir / LAUNCH_FILE} cannot be read ({exc}): pass --actors and --max-actions "
+                                "(the file only holds their last values)") from None
+    taken = []
+    for flag, attr, default in (("--actors", "actors", 2), ("--max-actions", "max_actions", 0)):
+        if getattr(args, attr, None) is not None:
+            continue
+        value = last.get(attr) if isinstance(last, dict) else None
+        if isinstance(value, int) and not isinstance(value, bool):
+            setattr(args, attr, value)
+            taken.append(f"{flag} {value}")
+        else:
+            setattr(args, attr, default)
+    if taken:
+        log.info("resuming with %s, as the run's last launch (%s); pass them to change", " ".join(taken),
+                 run_dir / LAUNCH_FILE)
+
+
+def _write_json(path: Path, data: dict[str, object]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
 
 
 def _check_not_running(run_dir: Path) -> None:

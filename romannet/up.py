@@ -18,7 +18,9 @@ The run directory `<runs-dir>/<name>/` holds (config.toml is written first, befo
     replay/               the replay server's log segments and snapshots
     checkpoints/ metrics.csv tensorboard/ learning_curves.png    the learner's
     actors/<id>/status.json  episodes/<id>/*.mcap                 each actor's
-    summary.json          totals at exit
+    actors/ledger.json    each actor's totals over the run's launches and restarts (what --max-actions counts)
+    launch.json           this launch's --actors and --max-actions (a --resume's defaults)
+    summary.json          the run's totals at exit
 
 Stopping (Ctrl-C, SIGTERM, SIGHUP, or every actor reaching its share of --max-actions): actors first
 (they finish the primitive under way, flush spool and MCAP), then the learner (checkpoint), then the
@@ -62,6 +64,7 @@ log = logging.getLogger("romannet.up")
 
 # Stop ranks: lower stops first.
 ACTOR_RANK, LEARNER_RANK, REPLAY_RANK = 0, 1, 2
+LEDGER_FILE = "ledger.json"  # <run>/actors/: each actor's totals over the run's launches (progress.ActorLedger)
 STAGE_TIMEOUT_S = 180.0  # how long a stage of the start-up may take to come alive before the next starts
 
 
@@ -74,15 +77,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", choices=["clutter", "arrangement", "stacking"], help="task (default: the config's, "
                    "clutter)")
     p.add_argument("--goal-height", type=int, metavar="N", help="stacking: cubes in the goal stack (2..5)")
-    p.add_argument("--actors", type=int, default=2, metavar="N", help="simulated actors (default: 2; 0 with "
-                   "--from-recordings: train on the recordings only)")
+    p.add_argument("--actors", type=int, metavar="N", help="simulated actors (default: 2, or with --resume the "
+                   "run's last launch's; 0 with --from-recordings: train on the recordings only)")
     p.add_argument("--from-recordings", action="append", default=[], metavar="FILE|DIR",
                    help="pre-fill the replay server with these MCAP episode recordings (the learner feeds them, "
                    "acknowledged and idempotent, before it trains); with actors, recorded and live experience "
                    "mix (repeatable)")
-    p.add_argument("--max-actions", type=int, default=0, metavar="N",
-                   help="total actions over the whole fleet, split evenly between the actors; the launcher "
-                   "stops everything cleanly when every actor has done its share (default: 0 = until Ctrl-C)")
+    p.add_argument("--max-actions", type=int, metavar="N",
+                   help="total actions of the run over the whole fleet, split evenly between the actors; the "
+                   "launcher stops everything cleanly when every actor has done its share; with --resume "
+                   "the actions of earlier launches count (default: 0 = until Ctrl-C, or with --resume the "
+                   "run's last launch's)")
     p.add_argument("--resolution", type=float, metavar="M_PER_PX", help="heightmap resolution in metres per "
                    "pixel over the 0.448 m workspace: 0.002 -> 224x224 (default), 0.007 -> 64x64")
     p.add_argument("--robot", choices=["arm", "gripper"], help="simulated robot: the Panda arm (default) or "
@@ -103,12 +108,23 @@ def split_actions(total: int, actors: int) -> list[int]:
     return [base + (1 if i < extra else 0) for i in range(actors)]
 
 
+def actor_shares(max_actions: int, done: int, actors: int) -> list[int]:
+    """Each actor's --max-actions for this launch: what is left of the run's max_actions after the `done`
+    actions of earlier launches, split evenly; at least 1 each (an actor started at all has to flush its
+    spool, and 0 would mean no limit). All 0 (no limit) when max_actions is 0."""
+    if max_actions <= 0:
+        return [0] * max(actors, 0)
+    return [max(1, share) for share in split_actions(max(0, max_actions - done), actors)]
+
+
 def build_specs(run_dir: Path, cfg: Config, args: argparse.Namespace, replay_ep: str, learner_ep: str,
                 ledger: ActorLedger) -> list[ChildSpec]:
     """The replay server, the learner and the actors as supervised children.
 
-    An actor's --max-actions counts the actions of its process; a restarted actor gets what is left of
-    its share (ledger: what its earlier processes did), so the fleet's total stays --max-actions."""
+    An actor's --max-actions counts the actions of its process. The run's --max-actions less what earlier
+    launches did (the ledger at its mark_start) is split between the actors; a restarted actor gets what is
+    left of its share (ledger: what its earlier processes of this launch did), so the run's total stays
+    --max-actions."""
     base = [sys.executable, "-m", "romannet.cli"]
     level = logging.getLevelName(logging.getLogger().getEffectiveLevel())
     if isinstance(level, str):
@@ -132,14 +148,14 @@ def build_specs(run_dir: Path, cfg: Config, args: argparse.Namespace, replay_ep:
         ChildSpec("learner", learner_argv, stop_rank=LEARNER_RANK, restart="always", stop_timeout_s=stop_s,
                   log_path=logs / "learner.log"),
     ]
-    for i, share in enumerate(split_actions(args.max_actions, args.actors)):
+    for i, share in enumerate(actor_shares(args.max_actions, ledger.start_total(), args.actors)):
         actor_id = f"actor-{i}"
 
         def actor_argv(actor_id: str = actor_id, share: int = share) -> list[str]:
             argv = [*base, "actor", "--config", config, "--run-dir", str(run_dir), "--actor-id", actor_id,
                     "--connect", replay_ep, "--connect", learner_ep]
             if share:  # at least 1: a process that crashed after its last action still has to flush
-                argv += ["--max-actions", str(max(1, share - ledger.actions(actor_id)))]
+                argv += ["--max-actions", str(max(1, share - ledger.this_start(actor_id)))]
             return argv
 
         specs.append(ChildSpec(actor_id, actor_argv, stop_rank=ACTOR_RANK, restart="on-failure",
@@ -208,6 +224,15 @@ def run(args: argparse.Namespace) -> int:
     from romannet.common.zenoh_session import free_port, make_config, open_session, wait_for_liveliness
 
     run_dir, cfg = prepare_run(args)
+    ledger = ActorLedger.load(run_dir / "actors" / LEDGER_FILE)  # a fresh run has none yet
+    if args.resume:
+        for name, status in read_actor_statuses(run_dir).items():  # the last launch's processes
+            ledger.retire(name, status)
+    ledger.mark_start()
+    if args.max_actions and ledger.start_total() >= args.max_actions:
+        log.info("run %s already has %d actions (--max-actions %d): nothing to do; raise --max-actions to "
+                 "train on", run_dir.name, ledger.start_total(), args.max_actions)
+        return 0
     file_handler = _attach_log_file(run_dir / "launcher.log")
     display = ProgressDisplay(log_every_s=args.progress_every)
     console = [h for h in logging.getLogger().handlers if isinstance(h, logging.StreamHandler)
@@ -223,7 +248,8 @@ def run(args: argparse.Namespace) -> int:
              "learner on %s", cfg.run_id, run_dir, cfg.task.kind, cfg.workspace.height_px, cfg.workspace.width_px,
              cfg.sim.robot, args.actors, args.max_actions or "unlimited", ", resumed" if args.resume else "",
              replay_ep, learner_ep)
-    ledger = ActorLedger()
+    if ledger.start_total():
+        log.info("the run's earlier launches made %d actions; --max-actions counts them", ledger.start_total())
 
     def on_exit(name: str, _code: int) -> None:
         if sup.children[name].spec.stop_rank == ACTOR_RANK:  # bank its counts before a restart resets them
@@ -269,7 +295,7 @@ def run(args: argparse.Namespace) -> int:
         display.clear()
         for h in console:
             h.removeFilter(clear)
-    _summary(run_dir, progress.snapshot(), final, sup, outcome, time.monotonic() - started)
+    _summary(run_dir, progress.snapshot(), final, sup, outcome, time.monotonic() - started, ledger.start_total())
     logging.getLogger().removeHandler(file_handler)
     file_handler.close()
     unclean = {n: c.last_exit for n, c in sup.children.items() if c.last_exit not in (None, 0)}
@@ -328,11 +354,11 @@ def _final_stats(client: Any, sup: Supervisor) -> dict[str, Any] | None:
 
 
 def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, sup: Supervisor, outcome: str,
-             elapsed_s: float) -> dict[str, Any]:
-    """Log the totals and write them to summary.json (atomically)."""
+             elapsed_s: float, earlier_actions: int = 0) -> dict[str, Any]:
+    """Log the run's totals (all launches; actions also this launch's) and write them to summary.json."""
     summary = {
         "run_dir": str(run_dir), "outcome": outcome, "elapsed_s": round(elapsed_s, 1),
-        "actions": snap.actions, "episodes": snap.episodes, "completed_episodes": snap.completed_episodes,
+        "actions": snap.actions, "actions_this_launch": snap.actions - earlier_actions, "episodes": snap.episodes, "completed_episodes": snap.completed_episodes,
         "pick_success": snap.successful_picks / snap.picks if snap.picks else None,
         "efficiency": snap.efficiency, "learner_updates": snap.updates,
         "learner_explore_rate": snap.learner_explore_rate, "acked": snap.acked, "spooled": snap.spooled,
@@ -350,9 +376,11 @@ def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, 
     tmp.write_text(json.dumps(summary, indent=2) + "\n")
     os.replace(tmp, run_dir / "summary.json")
     pick = "-" if summary["pick_success"] is None else f"{100 * summary['pick_success']:.1f}%"
-    log.info("run %s %s after %.0f s: %d actions, %d episodes (%d completed), pick success %s, %s learner "
-             "updates, replay holds %s (acked by actors: %d, still spooled: %d), %d restart(s); summary in %s",
-             run_dir.name, outcome.replace("_", " "), elapsed_s, snap.actions, snap.episodes,
+    log.info("run %s %s after %.0f s: %d actions (%d in this launch), %d episodes (%d completed), pick "
+             "success %s, %s learner updates, replay holds %s (acked by actors: %d, still spooled: %d), "
+             "%d restart(s); summary in %s",
+             run_dir.name, outcome.replace("_", " "), elapsed_s, snap.actions, summary["actions_this_launch"],
+             snap.episodes,
              snap.completed_episodes, pick, snap.updates if snap.updates is not None else 0,
              summary["replay_size"], snap.acked, snap.spooled, sup.crashes, run_dir / "summary.json")
     return summary

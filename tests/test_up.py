@@ -5,8 +5,10 @@ log, opened with ReplayStore), the learner made updates, each actor used at leas
 and received LAE rates, every MCAP file is finished and holds the steps the actor took, no process is
 left. A second run SIGKILLs the replay server in the middle: the supervisor restarts it, actors keep
 acting on their spools and resend, and the totals still match. A third is interrupted like Ctrl-C (SIGINT
-to the launcher) and then resumed with --resume: nothing lost, nothing duplicated, the learner continues. A tiny model (4 channels, 1 residual block)
-and one torch thread per process keep it light on a shared 2-core box; every wait is bounded.
+to the launcher) and then resumed with --resume: nothing lost, nothing duplicated, the learner continues,
+--max-actions counts the earlier launch's actions, and a resume without fleet flags keeps the last
+launch's. A tiny model (4 channels, 1 residual block) and one torch thread per process keep it light on a
+shared 2-core box; every wait is bounded.
 """
 
 from __future__ import annotations
@@ -38,12 +40,14 @@ RUN_TIMEOUT_S = 180
 class Up:
     """A `romannet up` subprocess with its output in <tmp>/<name>.out."""
 
-    def __init__(self, tmp: Path, name: str, max_actions: int, *extra: str):
+    def __init__(self, tmp: Path, name: str, max_actions: int | None, *extra: str):
+        """max_actions None: neither --actors nor --max-actions (a --resume takes the last launch's)."""
         self.run_dir = tmp / "runs" / name
         self.out_path = tmp / f"{name}.out"
         self._out = self.out_path.open("ab")
-        args = ["up", "--runs-dir", str(tmp / "runs"), "--name", name, "--actors", "2", "--robot", "gripper",
-                "--resolution", "0.007", "--max-actions", str(max_actions), "--progress-every", "5", *extra]
+        fleet = [] if max_actions is None else ["--actors", "2", "--max-actions", str(max_actions)]
+        args = ["up", "--runs-dir", str(tmp / "runs"), "--name", name, *fleet, "--robot", "gripper",
+                "--resolution", "0.007", "--progress-every", "5", *extra]
         for s in SETS:
             args += ["--set", s]
         self.proc = subprocess.Popen([sys.executable, "-m", "romannet.cli", *args], stdout=self._out,
@@ -263,10 +267,16 @@ def test_ctrl_c_stops_cleanly_and_resume_continues(tmp_path: Path, ups: list[Up]
         steps, _, _ = _mcap_episodes(up.run_dir, aid)  # every file finished despite the interruption
         assert steps == status["actions"], (aid, steps, status)
     updates_before = int(list(csv.DictReader((up.run_dir / "metrics.csv").open()))[-1]["update"])
+    done = sum(status["actions"] for status in first.values())
 
-    again = Up(tmp_path, "resumed", 20, "--resume")
+    # --max-actions counts the run's actions over its launches: 20 more to reach done + 20.
+    again = Up(tmp_path, "resumed", done + 20, "--resume")
     ups.append(again)
     assert again.wait() == 0, again.output()
+    summary = json.loads((again.run_dir / "summary.json").read_text())
+    assert summary["outcome"] == "max_actions_reached", summary
+    assert (summary["actions"], summary["actions_this_launch"]) == (done + 20, 20), summary
+    assert f"the run's earlier launches made {done} actions" in again.output()
     assert f"resumed from {up.run_dir / 'checkpoints'}" in (again.run_dir / "logs" / "learner.log").read_text()
     second = _statuses(again.run_dir)
     keys, _ = _replay_items(again.run_dir)
@@ -277,6 +287,14 @@ def test_ctrl_c_stops_cleanly_and_resume_continues(tmp_path: Path, ups: list[Up]
         assert per_actor[aid] == first[aid]["actions"] + second[aid]["actions"], (aid, per_actor, first, second)
     rows = [int(r["update"]) for r in csv.DictReader((again.run_dir / "metrics.csv").open())]
     assert rows == sorted(rows) and rows[-1] > updates_before, (updates_before, rows[-5:])
+
+    # Resumed without --actors / --max-actions: the last launch's (2, done + 20), which the run has reached.
+    third = Up(tmp_path, "resumed", None, "--resume")
+    ups.append(third)
+    assert third.wait(60) == 0, third.output()
+    assert "resuming with --actors 2 --max-actions" in third.output()
+    assert f"already has {done + 20} actions (--max-actions {done + 20}): nothing to do" in third.output()
+    assert third.pids() == again.pids(), "the third launch started processes"
 
 
 def test_killed_actor_is_restarted_with_the_rest_of_its_share(tmp_path: Path, ups: list[Up]) -> None:

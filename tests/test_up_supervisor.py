@@ -3,6 +3,7 @@ SIGKILL after the grace time, and no orphan when the launcher itself is killed."
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
 import signal
@@ -17,7 +18,7 @@ import pytest
 
 from romannet.progress import ActorLedger, MovingRate, read_last_metrics
 from romannet.supervisor import ChildSpec, RestartPolicy, Supervisor
-from romannet.up import split_actions
+from romannet.up import actor_shares, split_actions
 
 PY = sys.executable
 
@@ -160,6 +161,40 @@ def test_split_actions_and_ledger_across_restarts() -> None:
     assert ledger.actions("a") == 7
 
 
+def test_actor_shares_count_the_runs_earlier_launches() -> None:
+    assert actor_shares(0, 500, 2) == [0, 0]  # no limit
+    assert actor_shares(2500, 0, 1) == [2500]
+    assert actor_shares(2500, 1666, 1) == [834]
+    assert actor_shares(2500, 1667, 2) == [417, 416]
+    assert actor_shares(2500, 2499, 3) == [1, 1, 1]  # every started actor does one (0 would be no limit)
+
+
+def test_ledger_saved_and_loaded_across_launches(tmp_path: Path) -> None:
+    from romannet.common.errors import RomannetError
+
+    path = tmp_path / "actors" / "ledger.json"
+    first = ActorLedger.load(path)  # none yet: empty
+    assert first.total_actions() == 0
+    first.retire("a", {"pid": 10, "started_ns": 1, "actions": 7, "picks": 5})
+    second = ActorLedger.load(path)  # what the next launch reads
+    second.retire("a", {"pid": 10, "started_ns": 1, "actions": 7, "picks": 5})  # that process again: nothing
+    second.retire("a", {"pid": 10, "started_ns": 2, "actions": 3})  # the same pid after a reboot is another
+    second.retire("b", {"pid": 12, "actions": 4})  # a status from before started_ns
+    second.mark_start()
+    assert (second.actions("a"), second.total_actions(), second.start_total()) == (10, 14, 14)
+    assert second.merged("a", {"pid": 10, "started_ns": 2, "actions": 3})["actions"] == 10  # stale file
+    assert second.merged("a", {"pid": 20, "started_ns": 9, "actions": 2, "picks": 1})["picks"] == 6
+    second.retire("a", {"pid": 20, "started_ns": 9, "actions": 2})  # a crash in this launch
+    assert second.this_start("a") == 2 and second.this_start("b") == 0
+    assert ActorLedger.load(path).carried == second.carried
+    path.write_text('{"carried": {"a": {"actions": 7}}, "ret')  # torn
+    with pytest.raises(RomannetError, match="cannot be read .*move it away"):
+        ActorLedger.load(path)
+    path.write_text('{"carried": [1, 2], "retired": []}')
+    with pytest.raises(RomannetError, match="is not a ledger"):
+        ActorLedger.load(path)
+
+
 def test_moving_pick_rate_and_metrics_tail(tmp_path: Path) -> None:
     rate = MovingRate(window=10)
     for attempts, successes in [(0, 0), (10, 2), (20, 10)]:
@@ -193,3 +228,29 @@ def test_prepare_run_flags_fresh_and_resume(tmp_path: Path) -> None:
     assert resumed.task.kind == "stacking" and resumed.learner.batch_size == 4
     with pytest.raises(RomannetError, match="at least one action per actor"):
         prepare_run(args("--actors", "3", "--max-actions", "2"))
+
+
+def test_resume_takes_the_last_launchs_fleet_unless_given(tmp_path: Path) -> None:
+    from romannet.cli import build_parser
+    from romannet.common.errors import RomannetError
+    from romannet.rundir import prepare_run
+
+    def args(*extra: str) -> argparse.Namespace:
+        ns = build_parser().parse_args(["up", "--runs-dir", str(tmp_path), "--name", "r1", *extra])
+        prepare_run(ns)
+        return ns
+
+    fresh = args("--actors", "1", "--max-actions", "2500")
+    assert (fresh.actors, fresh.max_actions) == (1, 2500)
+    resumed = args("--resume")
+    assert (resumed.actors, resumed.max_actions) == (1, 2500)
+    changed = args("--resume", "--actors", "3")
+    assert (changed.actors, changed.max_actions) == (3, 2500)
+    assert (args("--resume").actors, args("--resume", "--max-actions", "0").max_actions) == (3, 0)
+    other = build_parser().parse_args(["up", "--runs-dir", str(tmp_path), "--name", "r2"])
+    prepare_run(other)
+    assert (other.actors, other.max_actions) == (2, 0)  # a fresh run's defaults
+    (tmp_path / "r2" / "launch.json").write_text("{not json")
+    with pytest.raises(RomannetError, match="launch.json cannot be read .*pass --actors and --max-actions"):
+        args_r2 = build_parser().parse_args(["up", "--runs-dir", str(tmp_path), "--name", "r2", "--resume"])
+        prepare_run(args_r2)
