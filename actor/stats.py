@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from romannet.common.fsutil import write_json_atomic
+
 _RECENT_VERSIONS = 16
 
 
@@ -105,9 +107,7 @@ class ActorStats:
 
 def write_status(path: Path, status: dict[str, Any]) -> None:
     """Atomically replace `path` with the JSON object (tmp file + rename; no fsync: it is rewritten often)."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(status, indent=1) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    write_json_atomic(path, status)
 
 
 def read_status(path: str | Path) -> dict[str, Any] | None:

@@ -1,9 +1,11 @@
-"""Small file-system helpers for the durability paths (spool, replay log, checkpoints)."""
+"""Small file-system helpers for the durability paths (spool, replay log, checkpoints) and run files."""
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
+from typing import Any
 
 
 def fsync_directory(directory: str | Path) -> None:
@@ -13,3 +15,11 @@ def fsync_directory(directory: str | Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def write_json_atomic(path: Path, data: Any, indent: int = 1) -> None:
+    """Replace `path` with `data` as JSON all at once (tmp file + rename): a reader or a crash sees the old
+    file or the new one, never half of one. No fsync: for files rewritten often (statuses, counts)."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=indent) + "\n", encoding="utf-8")
+    os.replace(tmp, path)

@@ -16,7 +16,6 @@ import csv
 import io
 import json
 import logging
-import os
 import sys
 import time
 from collections import deque
@@ -131,11 +130,10 @@ class ActorLedger:
     def save(self) -> None:
         if self.path is None:
             return
-        data = {"carried": self.carried, "retired": sorted(self._retired, key=repr)}
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        tmp.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
-        os.replace(tmp, self.path)
+        from romannet.common.fsutil import write_json_atomic
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(self.path, {"carried": self.carried, "retired": sorted(self._retired, key=repr)})
 
     def retire(self, actor_id: str, status: dict[str, Any] | None) -> None:
         if not status or process_identity(status) in self._retired:
@@ -159,9 +157,6 @@ class ActorLedger:
 
     def actions(self, actor_id: str) -> int:
         return self.carried.get(actor_id, {}).get("actions", 0)
-
-    def total_actions(self) -> int:
-        return sum(bank.get("actions", 0) for bank in self.carried.values())
 
     def mark_start(self) -> None:
         self._at_start = {aid: bank.get("actions", 0) for aid, bank in self.carried.items()}

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from romannet.common.errors import RomannetError
+from romannet.common.fsutil import write_json_atomic
 
 if TYPE_CHECKING:
     from romannet.common.config import Config
@@ -82,7 +83,7 @@ def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
         cfg = load_config(args.config, overrides)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_toml(cfg, saved)
-    _write_json(run_dir / LAUNCH_FILE, {"actors": args.actors, "max_actions": args.max_actions})
+    write_json_atomic(run_dir / LAUNCH_FILE, {"actors": args.actors, "max_actions": args.max_actions})
     return run_dir, cfg
 
 
@@ -108,12 +109,6 @@ def _fill_launch_defaults(args: argparse.Namespace, run_dir: Path) -> None:
     if taken:
         log.info("resuming with %s, as the run's last launch (%s); pass them to change", " ".join(taken),
                  run_dir / LAUNCH_FILE)
-
-
-def _write_json(path: Path, data: dict[str, object]) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
 
 
 def _check_not_running(run_dir: Path) -> None:

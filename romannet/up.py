@@ -34,7 +34,6 @@ SIGKILL after the timeout), 2 for bad arguments.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import signal
@@ -44,6 +43,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from romannet.common.fsutil import write_json_atomic
 
 from .progress import (
     ActorLedger,
@@ -259,9 +260,7 @@ def run(args: argparse.Namespace) -> int:
 
     def on_start(name: str, pid: int) -> None:  # pids.json: which process is which, for people and tests
         pids[name] = pid
-        tmp = run_dir / "pids.json.tmp"
-        tmp.write_text(json.dumps({"launcher": os.getpid(), **pids}, indent=1) + "\n")
-        os.replace(tmp, run_dir / "pids.json")
+        write_json_atomic(run_dir / "pids.json", {"launcher": os.getpid(), **pids})
 
     sup = Supervisor(build_specs(run_dir, cfg, args, replay_ep, learner_ep, ledger), RestartPolicy(),
                      on_exit=on_exit, on_start=on_start)
@@ -358,7 +357,8 @@ def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, 
     """Log the run's totals (all launches; actions also this launch's) and write them to summary.json."""
     summary = {
         "run_dir": str(run_dir), "outcome": outcome, "elapsed_s": round(elapsed_s, 1),
-        "actions": snap.actions, "actions_this_launch": snap.actions - earlier_actions, "episodes": snap.episodes, "completed_episodes": snap.completed_episodes,
+        "actions": snap.actions, "actions_this_launch": snap.actions - earlier_actions, "episodes": snap.episodes,
+        "completed_episodes": snap.completed_episodes,
         "pick_success": snap.successful_picks / snap.picks if snap.picks else None,
         "efficiency": snap.efficiency, "learner_updates": snap.updates,
         "learner_explore_rate": snap.learner_explore_rate, "acked": snap.acked, "spooled": snap.spooled,
@@ -372,15 +372,12 @@ def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, 
                                                 "sent", "acked", "spool_items", "last_done_reason")}
                    for aid, s in snap.actors.items()},
     }
-    tmp = run_dir / "summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2) + "\n")
-    os.replace(tmp, run_dir / "summary.json")
+    write_json_atomic(run_dir / "summary.json", summary, indent=2)
     pick = "-" if summary["pick_success"] is None else f"{100 * summary['pick_success']:.1f}%"
     log.info("run %s %s after %.0f s: %d actions (%d in this launch), %d episodes (%d completed), pick "
              "success %s, %s learner updates, replay holds %s (acked by actors: %d, still spooled: %d), "
              "%d restart(s); summary in %s",
              run_dir.name, outcome.replace("_", " "), elapsed_s, snap.actions, summary["actions_this_launch"],
-             snap.episodes,
-             snap.completed_episodes, pick, snap.updates if snap.updates is not None else 0,
+             snap.episodes, snap.completed_episodes, pick, snap.updates if snap.updates is not None else 0,
              summary["replay_size"], snap.acked, snap.spooled, sup.crashes, run_dir / "summary.json")
     return summary
