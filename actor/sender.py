@@ -6,10 +6,12 @@ Outcomes of one insert (the item is the spool's oldest; it is resent until one o
   resend of a transition the server already stored gets (its ack was lost, or the actor restarted).
 * ack "rejected", or an error reply that resending cannot cure (undecodable, oversized, wrong shape) -> the
   item moves to the spool's rejected/ folder with the reason and is logged; it is never resent.
-* no reply (TimeoutError: NoReplyError, RateLimitedError), a transient error reply (shutting_down,
-  internal) or any other exception -> the server is treated as unreachable: wait (exponential backoff,
-  resend_backoff_initial_s doubling up to resend_backoff_max_s) and resend the same item. One log line per
-  outage, one when acks flow again.
+* "rate_limited" (RateLimitedError): the server is up, and its samples-per-insert limiter held the insert
+  back for the whole wait because the learner lags: pacing, not an outage. The same item is resent at once
+  (the server itself did the waiting); the server stays reachable; one INFO line the first time only.
+* no reply (NoReplyError), a transient error reply (shutting_down, internal) or any other exception -> the
+  server is treated as unreachable: wait (exponential backoff, resend_backoff_initial_s doubling up to
+  resend_backoff_max_s) and resend the same item. One log line per outage, one when acks flow again.
 """
 
 from __future__ import annotations
@@ -31,6 +33,10 @@ log = logging.getLogger(__name__)
 
 # Error replies of the replay server after which the same bytes may well succeed later.
 TRANSIENT_REASONS = frozenset({"rate_limited", "shutting_down", "internal"})
+PACING_REASON = "rate_limited"  # the learner lags: the server holds inserts back (see the module docstring)
+# Pause after a pacing reply before the resend: the server held the insert for its wait already, so only a
+# reply that came back at once (a server configured with no wait) needs this to avoid a tight loop.
+_PACED_RESEND_S = 0.05
 
 
 @dataclass
@@ -44,6 +50,8 @@ class SenderStats:
     rejected: int = 0  # moved to rejected/, never resent
     failures: int = 0  # requests that got no usable answer (resent later)
     reachable: bool = True  # False from the first failure until the next acknowledgement
+    paced: int = 0  # inserts the server's rate limiter held back (the learner lags), resent at once
+    pacing: bool = False  # True from a pacing reply until the next acknowledgement or failure
     last_error: str = ""
 
 
@@ -71,6 +79,7 @@ class Sender:
         self._flush_deadline = float("inf")  # monotonic s; after stop(): give up on what is left then
         self._thread = threading.Thread(target=self._run, name="spool-sender", daemon=True)
         self._down_since: float | None = None
+        self._told_pacing = False
 
     def start(self) -> Sender:
         self._thread.start()
@@ -107,17 +116,20 @@ class Sender:
             seq = self.spool.wait_for_item(0.2)
             if seq is None:
                 continue
-            if self._send(seq):
+            outcome = self._send(seq)
+            if outcome != "failed":  # the server answered
                 backoff_s = self.backoff_initial_s
+            if outcome == "settled":
                 continue
-            wait_s = backoff_s
+            wait_s = _PACED_RESEND_S if outcome == "paced" else backoff_s
             if self._stop.is_set():
                 wait_s = min(wait_s, max(0.0, self._flush_deadline - time.monotonic()))
             # Wake early on stop() only to re-check the deadline; sleeping past it would delay the exit.
             end = time.monotonic() + wait_s
             while not self._done() and time.monotonic() < end:
                 time.sleep(min(0.05, max(0.0, end - time.monotonic())))
-            backoff_s = min(backoff_s * 2.0, self.backoff_max_s)
+            if outcome == "failed":
+                backoff_s = min(backoff_s * 2.0, self.backoff_max_s)
 
     def _insert(self, data: bytes) -> InsertAckMsg:
         insert_encoded = getattr(self.client, "insert_encoded", None)
@@ -125,13 +137,14 @@ class Sender:
             return insert_encoded(data, timeout_s=self.insert_timeout_s)
         return self.client.insert(decode_transition(data), timeout_s=self.insert_timeout_s)
 
-    def _send(self, seq: int) -> bool:
-        """One attempt for item seq; True if it was settled (acknowledged or rejected), False to retry."""
+    def _send(self, seq: int) -> str:
+        """One attempt for item seq: "settled" (acknowledged or rejected), "paced" (the server's rate limiter
+        held it back: resend soon) or "failed" (resend after a backoff)."""
         try:
             data = self.spool.read(seq)
         except FileNotFoundError:  # removed behind our back (an operator cleaning up): nothing to send
             self.spool.remove(seq)
-            return True
+            return "settled"
         key = item_key(data)
         key_text = "/".join(map(str, key)) if key else f"spool item {seq}"
         with self._lock:
@@ -140,40 +153,63 @@ class Sender:
             ack = self._insert(data)
         except DecodeError as err:  # only the in-process path decodes here: the bytes are corrupt
             self._reject(seq, key_text, f"undecodable: {err}")
-            return True
+            return "settled"
         except RemoteError as err:
+            if err.reason == PACING_REASON:
+                self._paced(err.detail)
+                return "paced"
             if err.reason in TRANSIENT_REASONS:
                 self._failure(f"{err.reason}: {err.detail}")
-                return False
+                return "failed"
             self._reject(seq, key_text, f"{err.reason}: {err.detail}")
-            return True
+            return "settled"
         except Exception as err:  # TimeoutError (no reply), a closing session, ...: resend later
             self._failure(f"{type(err).__name__}: {err}")
-            return False
+            return "failed"
         if key is not None and (ack.actor_id, ack.episode_id, ack.step) != key:
             self._failure(f"ack for {ack.actor_id}/{ack.episode_id}/{ack.step} while sending {key_text}")
-            return False
+            return "failed"
         if ack.status == "rejected":
             self._reject(seq, key_text, f"rejected: {ack.detail}")
-            return True
+            return "settled"
         self.spool.remove(seq)
         with self._lock:
             self._stats.acked += 1
             self._stats.accepted += ack.status == "accepted"
             self._stats.duplicates += ack.status == "duplicate"
+            self._stats.pacing = False
+        self._answered()
+        return "settled"
+
+    def _answered(self) -> None:
+        """The server answered (an ack or a pacing reply): an outage, if one was on, is over."""
+        with self._lock:
             was_down = not self._stats.reachable
             self._stats.reachable = True
         if was_down:
             down_s = time.monotonic() - (self._down_since or time.monotonic())
-            log.info("replay server reachable again after %.1f s: acknowledgements flow; %d transition(s) "
-                     "pending in the spool", down_s, self.spool.items)
+            log.info("replay server reachable again after %.1f s; %d transition(s) pending in the spool",
+                     down_s, self.spool.items)
             self._down_since = None
-        return True
+
+    def _paced(self, detail: str) -> None:
+        with self._lock:
+            self._stats.paced += 1
+            self._stats.pacing = True
+        self._answered()
+        if not self._told_pacing:
+            self._told_pacing = True
+            log.info("the replay server paces this actor to the learner: its rate limiter holds inserts back "
+                     "while the learner lags (samples_per_insert); the actor waits, which is normal when the "
+                     "learner is slower than the fleet (%s)", detail[:300])
+        else:
+            log.debug("insert held back by the rate limiter (%s)", detail[:300])
 
     def _failure(self, why: str) -> None:
         with self._lock:
             self._stats.failures += 1
             self._stats.last_error = why[:500]
+            self._stats.pacing = False
             first = self._stats.reachable
             self._stats.reachable = False
         if first:

@@ -138,7 +138,7 @@ class ActorLoop:
         status.update(spool_items=self.spool.items, spool_bytes=self.spool.bytes,
                       spool_recovered=self.spool.recovered, sent=s.sent, acked=s.acked, accepted=s.accepted,
                       duplicates=s.duplicates, rejected=s.rejected, send_failures=s.failures,
-                      server_reachable=s.reachable)
+                      server_reachable=s.reachable, paced_inserts=s.paced)
         write_status(self.paths.status, status)
 
     def limits_reached(self) -> bool:
@@ -177,18 +177,24 @@ class ActorLoop:
         # until the learner catches up (a small spool then paces the actor): only a longer one is news.
         if self.spool.wait_for_room(_QUIET_PAUSE_S):
             return True
-        reason = (f"spool full: {self.spool.items} transitions / {self.spool.bytes} bytes not acknowledged "
-                  f"(bound {self.spool.max_items} items / {self.spool.max_bytes} bytes); is the replay "
-                  f"server reachable? last send error: {self.sender.stats().last_error or 'none'}")
-        log.warning("actor paused: %s", reason)
+        sent = self.sender.stats()
+        full = (f"spool full: {self.spool.items} transitions / {self.spool.bytes} bytes not acknowledged "
+                f"(bound {self.spool.max_items} items / {self.spool.max_bytes} bytes)")
+        if sent.pacing and sent.reachable:  # the learner lags: routine on a CPU learner, not news
+            reason = f"paced by the learner (the replay server's samples_per_insert limit); {full}"
+            log.debug("actor waiting: %s", reason)
+        else:
+            reason = f"{full}; is the replay server reachable? last send error: {sent.last_error or 'none'}"
+            log.warning("actor paused: %s", reason)
         self.stats.paused, self.stats.pause_reason, self.stats.state = True, reason, "paused"
         self.write_status()
         started = time.monotonic()
         while not self.spool.wait_for_room(_PAUSE_POLL_S):
             if self.stop.is_set():
                 return False
-        log.info("actor resumed after %.1f s paused: the spool has room again (%d items)",
-                 time.monotonic() - started, self.spool.items)
+        log.log(logging.DEBUG if reason.startswith("paced") else logging.INFO,
+                "actor resumed after %.1f s paused: the spool has room again (%d items)",
+                time.monotonic() - started, self.spool.items)
         self.stats.paused, self.stats.pause_reason, self.stats.state = False, "", "running"
         self.write_status()
         return True

@@ -15,7 +15,8 @@ a file. Fields (counts are of this process's life unless noted):
     explore_rate (in use), explore_rate_received (false while cfg.exploration.initial_rate is used)
     spool_items, spool_bytes, spool_recovered (found on start), sent (insert requests, resends included),
     acked (transitions the server acknowledged), accepted, duplicates, rejected, send_failures,
-    server_reachable, paused (bool), pause_reason, last_done_reason
+    server_reachable, paced_inserts (inserts the rate limiter held back while the learner lagged),
+    paused (bool), pause_reason ("paced by the learner ..." for that routine wait), last_done_reason
 """
 
 from __future__ import annotations

@@ -283,12 +283,19 @@ def _pct(value: float | None) -> str:
     return "-" if value is None else f"{100 * value:.0f}%"
 
 
+def _pause_mark(status: dict) -> str:
+    """" PAUSED" for an actor that stopped acting, " paced" for one waiting for the learner (routine)."""
+    if not status.get("paused"):
+        return ""
+    return " paced" if str(status.get("pause_reason", "")).startswith("paced") else " PAUSED"
+
+
 def format_line(snap: FleetSnapshot, max_actions: int | None = None) -> str:
     """One line: actions, pick success, efficiency, episodes, updates, replay, LAE, weights per actor."""
     actions = f"{snap.actions}/{max_actions}" if max_actions else str(snap.actions)
     lae = "-" if snap.learner_explore_rate is None else f"{snap.learner_explore_rate:.2f}"
     per_actor = " ".join(
-        f"{aid}:v{s.get('weights_version', '-')}" + (" PAUSED" if s.get("paused") else "")
+        f"{aid}:v{s.get('weights_version', '-')}" + _pause_mark(s)
         for aid, s in sorted(snap.actors.items()))
     return (f"[{snap.elapsed_s:6.0f}s] actions {actions} | pick {_pct(snap.moving_pick_success)} "
             f"(moving) | eff {_pct(snap.efficiency)} | episodes {snap.episodes} "

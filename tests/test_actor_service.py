@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -23,6 +24,7 @@ from romannet.common.config import Config, load_config
 from romannet.common.config_actor import ActorConfig
 from romannet.common.config_replay import ReplayConfig
 from romannet.common.model import RoManNet, state_dict_to_tensors
+from romannet.common.replay_client import RateLimitedError
 from romannet.common.wire import ExplorationRateMsg
 from romannet.common.zenoh_session import free_port, make_config, open_session
 from romannet.replay.inprocess import InProcessReplayClient
@@ -143,6 +145,57 @@ def test_loop_sends_stamps_versions_and_records(tmp_path: Path, cfg: Config, sto
 class DownClient:
     def insert(self, transition, timeout_s: float = 10.0):
         raise TimeoutError("no reply (server down)")
+
+
+class LaggingLearnerClient(InProcessReplayClient):
+    """A live replay server whose rate limiter holds inserts back (RateLimitedError) until `release` is set:
+    the learner lags behind the actor."""
+
+    def __init__(self, store: ReplayStore):
+        super().__init__(store)
+        self.release = threading.Event()
+
+    def insert(self, transition, timeout_s: float = 10.0):
+        if not self.release.is_set():
+            time.sleep(0.02)  # the server holds the request for its wait before it answers
+            raise RateLimitedError("romannet/@v1/x/replay/insert/a0", "rate_limited", "held for 0.02 s")
+        return super().insert(transition, timeout_s)
+
+
+def test_waiting_for_a_lagging_learner_is_pacing_not_a_pause(tmp_path: Path, cfg: Config, store: ReplayStore,
+                                                             caplog: pytest.LogCaptureFixture,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full spool behind a rate-limited (live) server: the status says paced, the server reachable, and no
+    warning is logged; the transitions go once the learner catches up."""
+    import romannet.actor.service as service
+
+    monkeypatch.setattr(service, "_QUIET_PAUSE_S", 0.1)  # report the wait at once, not after 5 s
+    env = SimEnv.from_config(cfg)
+    client = LaggingLearnerClient(store)
+    acfg = _acfg(max_actions=3, spool_max_items=2, shutdown_flush_s=5.0, record_mcap=False)
+    status_path = ActorPaths.of(tmp_path, acfg).status
+    result: list = []
+    try:
+        with caplog.at_level(logging.INFO, logger="romannet.actor"):
+            thread = threading.Thread(target=lambda: result.append(
+                run_actor(cfg, tmp_path, env, client, NoWeights(), threading.Event(), actor_cfg=acfg)))
+            thread.start()
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and not (read_status(status_path) or {}).get("paused"):
+                time.sleep(0.05)
+            status = read_status(status_path)
+            assert status is not None and status["paused"] and status["actions"] == 2
+            assert status["pause_reason"].startswith("paced by the learner")
+            assert status["server_reachable"] is True and status["send_failures"] == 0
+            client.release.set()
+            thread.join(60)
+            assert not thread.is_alive()
+    finally:
+        env.close()
+    assert result and result[0].actions == 3 and len(store._by_key) == 3
+    status = read_status(status_path)
+    assert status["paced_inserts"] >= 1 and not status["paused"] and status["acked"] == 3
+    assert not [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
 
 
 def test_pauses_when_spool_full_and_resends_after_restart(tmp_path: Path, cfg: Config,

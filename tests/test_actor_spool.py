@@ -4,6 +4,7 @@ rejected transitions, a flaky replay server (TimeoutError for a while)."""
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import time
 from pathlib import Path
@@ -14,6 +15,7 @@ from _replay_helpers import tr
 
 from romannet.actor.sender import Sender, item_key
 from romannet.actor.spool import Spool
+from romannet.common.replay_client import RateLimitedError
 from romannet.common.wire import InsertAckMsg, TransitionMsg, encode_transition
 from romannet.common.zenoh_session import NoReplyError, RemoteError
 from romannet.replay.inprocess import InProcessReplayClient
@@ -174,3 +176,58 @@ def test_error_replies_transient_or_permanent(tmp_path: Path, reason: str, rejec
     stats = sender.stats()
     assert stats.rejected == rejected and stats.acked == 1 - rejected
     assert client.calls == (3 if rejected == 0 else 1)
+
+
+class PacingClient(ErrorReplyClient):
+    """A live server whose rate limiter holds the first `times` inserts back (the learner lags)."""
+
+    def insert_encoded(self, data: bytes, timeout_s: float = 10.0) -> InsertAckMsg:
+        if self.calls < self.times:
+            self.calls += 1
+            raise RateLimitedError("romannet/@v1/x/replay/insert", "rate_limited", "held for 0.1 s")
+        return super().insert_encoded(data, timeout_s)
+
+
+def test_rate_limited_inserts_are_pacing_not_an_outage(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A held-back insert keeps the server reachable, is resent without a growing backoff (10 s here would
+    show) and logs one INFO line, not a warning per insert."""
+    spool = Spool(tmp_path / "spool", max_items=10, max_bytes=1 << 30, fsync=False)
+    _fill(spool, 2)
+    client = PacingClient("rate_limited", times=4)
+    sender = Sender(spool, client, insert_timeout_s=1.0, backoff_initial_s=10.0, backoff_max_s=10.0)
+    with caplog.at_level(logging.DEBUG, logger="romannet.actor.sender"):
+        started = time.monotonic()
+        sender.start()
+        assert spool.wait_until_empty(5.0)
+        assert time.monotonic() - started < 5.0
+        sender.stop(flush_s=0.5)
+    stats = sender.stats()
+    assert stats.paced == 4 and stats.failures == 0 and stats.acked == 2 and stats.sent == 6
+    assert stats.reachable and not stats.pacing and stats.last_error == ""
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    told = [r for r in caplog.records if r.levelno == logging.INFO and "paces this actor" in r.getMessage()]
+    assert len(told) == 1
+
+
+def test_pacing_reply_ends_an_outage(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """No reply, then a rate-limited reply: the server answered, so it is reachable again."""
+    spool = Spool(tmp_path / "spool", max_items=10, max_bytes=1 << 30, fsync=False)
+    _fill(spool, 1)
+
+    class DownThenPacing(PacingClient):
+        def insert_encoded(self, data: bytes, timeout_s: float = 10.0) -> InsertAckMsg:
+            self.outage = getattr(self, "outage", 0) + 1
+            if self.outage == 1:
+                raise NoReplyError("no reply (simulated outage)")
+            return super().insert_encoded(data, timeout_s)
+
+    sender = Sender(spool, DownThenPacing("rate_limited", times=1), insert_timeout_s=1.0,
+                    backoff_initial_s=0.01, backoff_max_s=0.02)
+    with caplog.at_level(logging.INFO, logger="romannet.actor.sender"):
+        sender.start()
+        assert spool.wait_until_empty(5.0)
+        sender.stop(flush_s=0.5)
+    stats = sender.stats()
+    assert stats.failures == 1 and stats.paced == 1 and stats.acked == 1 and stats.reachable
+    messages = [r.getMessage() for r in caplog.records]
+    assert sum("unreachable" in m for m in messages) == 1 and sum("reachable again" in m for m in messages) == 1

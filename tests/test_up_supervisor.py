@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from romannet.progress import ActorLedger, MovingRate, read_last_metrics
+from romannet.progress import ActorLedger, FleetSnapshot, MovingRate, format_line, read_last_metrics
 from romannet.supervisor import ChildSpec, RestartPolicy, Supervisor
 from romannet.up import actor_shares, split_actions
 
@@ -203,6 +203,18 @@ def test_moving_pick_rate_and_metrics_tail(tmp_path: Path) -> None:
     csv_path = tmp_path / "metrics.csv"
     csv_path.write_text("update,explore_rate\n1,0.5\n2,0.4\n3,0.")  # the last row is being written
     assert read_last_metrics(csv_path) == {"update": "2", "explore_rate": "0.4"}
+
+
+def test_progress_line_tells_a_paced_actor_from_a_paused_one() -> None:
+    """Waiting for a slow learner is routine ("paced"); a spool full because the server is gone is news."""
+    snap = FleetSnapshot(actions=12, actors={
+        "a0": {"weights_version": 3, "paused": True, "pause_reason": "paced by the learner (...); spool full"},
+        "a1": {"weights_version": 3, "paused": True, "pause_reason": "spool full: ...; is the replay server "
+                                                                  "reachable?"},
+        "a2": {"weights_version": 2, "paused": False}})
+    line = format_line(snap, max_actions=100)
+    assert "actions 12/100" in line
+    assert "a0:v3 paced a1:v3 PAUSED a2:v2" in line
 
 
 def test_prepare_run_flags_fresh_and_resume(tmp_path: Path) -> None:
