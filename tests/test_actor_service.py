@@ -147,6 +147,16 @@ class DownClient:
         raise TimeoutError("no reply (server down)")
 
 
+def _wait_until_paused(status_path: Path, timeout_s: float = 60.0) -> dict:
+    """The actor's status once it says paused (fails the test after timeout_s)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not (read_status(status_path) or {}).get("paused"):
+        time.sleep(0.05)
+    status = read_status(status_path)
+    assert status is not None and status["paused"], f"not paused after {timeout_s} s: {status}"
+    return status
+
+
 class LaggingLearnerClient(InProcessReplayClient):
     """A live replay server whose rate limiter holds inserts back (RateLimitedError) until `release` is set:
     the learner lags behind the actor."""
@@ -180,11 +190,8 @@ def test_waiting_for_a_lagging_learner_is_pacing_not_a_pause(tmp_path: Path, cfg
             thread = threading.Thread(target=lambda: result.append(
                 run_actor(cfg, tmp_path, env, client, NoWeights(), threading.Event(), actor_cfg=acfg)))
             thread.start()
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline and not (read_status(status_path) or {}).get("paused"):
-                time.sleep(0.05)
-            status = read_status(status_path)
-            assert status is not None and status["paused"] and status["actions"] == 2
+            status = _wait_until_paused(status_path)
+            assert status["actions"] == 2
             assert status["pause_reason"].startswith("paced by the learner")
             assert status["server_reachable"] is True and status["send_failures"] == 0
             client.release.set()
@@ -208,11 +215,8 @@ def test_pauses_when_spool_full_and_resends_after_restart(tmp_path: Path, cfg: C
         thread = threading.Thread(target=run_actor, args=(cfg, tmp_path, env, DownClient(), NoWeights(), stop),
                                   kwargs={"actor_cfg": acfg})
         thread.start()
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and not (read_status(status_path) or {}).get("paused"):
-            time.sleep(0.05)
-        status = read_status(status_path)
-        assert status is not None and status["paused"] and status["actions"] == 2
+        status = _wait_until_paused(status_path)
+        assert status["actions"] == 2
         assert "spool full" in status["pause_reason"] and status["server_reachable"] is False
         stop.set()
         thread.join(30)
