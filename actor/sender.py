@@ -51,7 +51,7 @@ class SenderStats:
     failures: int = 0  # requests that got no usable answer (resent later)
     reachable: bool = True  # False from the first failure until the next acknowledgement
     paced: int = 0  # inserts the server's rate limiter held back (the learner lags), resent at once
-    pacing: bool = False  # True from a pacing reply until the next acknowledgement or failure
+    pacing: bool = False  # True from a pacing reply until the next failure (acks in between keep it)
     last_error: str = ""
 
 
@@ -62,6 +62,22 @@ def item_key(data: bytes) -> tuple[str, str, int] | None:
     except Exception:  # protobuf raises its own DecodeError; a corrupt item is judged by the server
         return None
     return t.actor_id, t.episode_id, t.step
+
+
+def spool_pause(stats: SenderStats, full: str) -> tuple[str, str]:
+    """(kind, reason) of an actor's wait on a full spool (`full` says how full), judged from its sender:
+
+    * "outage": the last request got no usable answer (the server down, unreachable, failing): news.
+    * "paced": the server's rate limiter has held inserts back since the last failure (the learner lags
+      behind the fleet): routine on a CPU learner.
+    * "waiting": the server answered the last request and the next one is in flight (held by the rate
+      limiter before its first pacing reply, or just slow); it turns into one of the others when it ends.
+    """
+    if not stats.reachable:
+        return "outage", f"{full}; is the replay server reachable? last send error: {stats.last_error or 'none'}"
+    if stats.pacing:
+        return "paced", f"paced by the learner (the replay server's samples_per_insert limit); {full}"
+    return "waiting", f"waiting for the replay server to acknowledge; {full}"
 
 
 class Sender:
@@ -177,7 +193,6 @@ class Sender:
             self._stats.acked += 1
             self._stats.accepted += ack.status == "accepted"
             self._stats.duplicates += ack.status == "duplicate"
-            self._stats.pacing = False
         self._answered()
         return "settled"
 

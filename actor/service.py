@@ -45,7 +45,7 @@ from romannet.common.policy import InferenceEngine, PolicyMaps, decide
 from romannet.common.wire import TransitionMsg, encode_transition
 
 from .recorder import EpisodeRecorder
-from .sender import Sender
+from .sender import Sender, spool_pause
 from .spool import Spool
 from .stats import ActorStats, ideal_actions, write_status
 
@@ -177,27 +177,32 @@ class ActorLoop:
         # until the learner catches up (a small spool then paces the actor): only a longer one is news.
         if self.spool.wait_for_room(_QUIET_PAUSE_S):
             return True
-        sent = self.sender.stats()
         full = (f"spool full: {self.spool.items} transitions / {self.spool.bytes} bytes not acknowledged "
                 f"(bound {self.spool.max_items} items / {self.spool.max_bytes} bytes)")
-        if sent.pacing and sent.reachable:  # the learner lags: routine on a CPU learner, not news
-            reason = f"paced by the learner (the replay server's samples_per_insert limit); {full}"
-            log.debug("actor waiting: %s", reason)
-        else:
-            reason = f"{full}; is the replay server reachable? last send error: {sent.last_error or 'none'}"
-            log.warning("actor paused: %s", reason)
-        self.stats.paused, self.stats.pause_reason, self.stats.state = True, reason, "paused"
-        self.write_status()
+        kind = self._report_pause(*spool_pause(self.sender.stats(), full))
         started = time.monotonic()
         while not self.spool.wait_for_room(_PAUSE_POLL_S):
             if self.stop.is_set():
                 return False
-        log.log(logging.DEBUG if reason.startswith("paced") else logging.INFO,
+            now_kind, reason = spool_pause(self.sender.stats(), full)
+            if now_kind != kind:  # e.g. the insert in flight timed out: now an outage, and news
+                kind = self._report_pause(now_kind, reason)
+        log.log(logging.DEBUG if kind == "paced" else logging.INFO,
                 "actor resumed after %.1f s paused: the spool has room again (%d items)",
                 time.monotonic() - started, self.spool.items)
-        self.stats.paused, self.stats.pause_reason, self.stats.state = False, "", "running"
+        self.stats.paused, self.stats.pause_kind, self.stats.pause_reason = False, "", ""
+        self.stats.state = "running"
         self.write_status()
         return True
+
+    def _report_pause(self, kind: str, reason: str) -> str:
+        """Log a spool pause at the level its kind deserves, put it in the status; returns kind."""
+        level = {"paced": logging.DEBUG, "waiting": logging.INFO}.get(kind, logging.WARNING)
+        log.log(level, "actor %s: %s", "paused" if kind == "outage" else "waiting", reason)
+        self.stats.paused, self.stats.pause_kind, self.stats.pause_reason = True, kind, reason
+        self.stats.state = "paused"
+        self.write_status()
+        return kind
 
     def wait_for_operator(self) -> bool:
         """While the environment is paused (a real robot stopped), wait for an operator; False if stopped.
@@ -211,14 +216,16 @@ class ActorLoop:
         self.paths.resume.unlink(missing_ok=True)  # a request from before this stop does not count
         message = f"{reason}. To resume: touch {self.paths.resume}"
         log.error("actor paused: %s", message)
-        self.stats.paused, self.stats.pause_reason, self.stats.state = True, message, "paused"
+        self.stats.paused, self.stats.pause_kind, self.stats.pause_reason = True, "robot", message
+        self.stats.state = "paused"
         self.write_status()
         while not self.stop.is_set():
             if self.paths.resume.exists():
                 self.paths.resume.unlink(missing_ok=True)
                 if self.env.try_resume():  # type: ignore[attr-defined]
                     log.info("actor resumed by the operator")
-                    self.stats.paused, self.stats.pause_reason, self.stats.state = False, "", "running"
+                    self.stats.paused, self.stats.pause_kind, self.stats.pause_reason = False, "", ""
+                    self.stats.state = "running"
                     self.write_status()
                     return True
                 log.error("resume refused: the robot is not ready yet (see above); still paused. %s", message)

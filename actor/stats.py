@@ -16,7 +16,8 @@ a file. Fields (counts are of this process's life unless noted):
     spool_items, spool_bytes, spool_recovered (found on start), sent (insert requests, resends included),
     acked (transitions the server acknowledged), accepted, duplicates, rejected, send_failures,
     server_reachable, paced_inserts (inserts the rate limiter held back while the learner lagged),
-    paused (bool), pause_reason ("paced by the learner ..." for that routine wait), last_done_reason
+    paused (bool), pause_kind ("paced": waiting for a lagging learner, routine; "waiting": an insert in flight;
+    "outage": the replay server does not answer; "robot": a robot stop), pause_reason, last_done_reason
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ class ActorStats:
     explore_rate: float = 0.0
     explore_rate_received: bool = False
     paused: bool = False
+    pause_kind: str = ""  # while paused: "paced" | "waiting" | "outage" (a full spool) or "robot" (a stop)
     pause_reason: str = ""
     last_done_reason: str = ""
     state: str = "starting"
@@ -102,7 +104,7 @@ class ActorStats:
             "weights_version": self.weights_version, "initial_weights": self.initial_weights,
             "weights_versions_used": len(self.versions_used), "weights_versions_recent": self.recent_versions,
             "explore_rate": self.explore_rate, "explore_rate_received": self.explore_rate_received,
-            "paused": self.paused, "pause_reason": self.pause_reason, "last_done_reason": self.last_done_reason,
+            "paused": self.paused, "pause_kind": self.pause_kind, "pause_reason": self.pause_reason, "last_done_reason": self.last_done_reason,
         }
 
 

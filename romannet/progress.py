@@ -284,10 +284,12 @@ def _pct(value: float | None) -> str:
 
 
 def _pause_mark(status: dict) -> str:
-    """" PAUSED" for an actor that stopped acting, " paced" for one waiting for the learner (routine)."""
+    """" paced" / " waiting" for an actor waiting for the learner or an acknowledgement (routine), " PAUSED"
+    for one stopped by an outage or a robot stop (news)."""
     if not status.get("paused"):
         return ""
-    return " paced" if str(status.get("pause_reason", "")).startswith("paced") else " PAUSED"
+    kind = status.get("pause_kind")
+    return f" {kind}" if kind in ("paced", "waiting") else " PAUSED"
 
 
 def format_line(snap: FleetSnapshot, max_actions: int | None = None) -> str:

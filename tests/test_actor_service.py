@@ -26,7 +26,7 @@ from romannet.common.config_replay import ReplayConfig
 from romannet.common.model import RoManNet, state_dict_to_tensors
 from romannet.common.replay_client import RateLimitedError
 from romannet.common.wire import ExplorationRateMsg
-from romannet.common.zenoh_session import free_port, make_config, open_session
+from romannet.common.zenoh_session import NoReplyError, free_port, make_config, open_session
 from romannet.replay.inprocess import InProcessReplayClient
 from romannet.replay.store import ReplayStore
 
@@ -192,7 +192,7 @@ def test_waiting_for_a_lagging_learner_is_pacing_not_a_pause(tmp_path: Path, cfg
             thread.start()
             status = _wait_until_paused(status_path)
             assert status["actions"] == 2
-            assert status["pause_reason"].startswith("paced by the learner")
+            assert status["pause_kind"] == "paced" and status["pause_reason"].startswith("paced by the learner")
             assert status["server_reachable"] is True and status["send_failures"] == 0
             client.release.set()
             thread.join(60)
@@ -203,6 +203,54 @@ def test_waiting_for_a_lagging_learner_is_pacing_not_a_pause(tmp_path: Path, cfg
     status = read_status(status_path)
     assert status["paced_inserts"] >= 1 and not status["paused"] and status["acked"] == 3
     assert not [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+class HangingThenDownClient:
+    """A server that takes the first insert and never answers: the request hangs until `give_up` is set, then
+    ends without a reply (NoReplyError), as a request to a server that died meanwhile does."""
+
+    def __init__(self) -> None:
+        self.give_up = threading.Event()
+
+    def insert(self, transition, timeout_s: float = 10.0):
+        self.give_up.wait(60)
+        raise NoReplyError("no reply (server died)")
+
+
+def test_a_wait_on_an_insert_in_flight_turns_into_an_outage(tmp_path: Path, cfg: Config,
+                                                            caplog: pytest.LogCaptureFixture,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """While the insert is in flight the actor is only waiting (no warning); when it fails the pause is an
+    outage: a warning and the status say so."""
+    import romannet.actor.service as service
+
+    monkeypatch.setattr(service, "_QUIET_PAUSE_S", 0.1)
+    env = SimEnv.from_config(cfg)
+    client, stop = HangingThenDownClient(), threading.Event()
+    acfg = _acfg(max_actions=20, spool_max_items=2, shutdown_flush_s=0.2, record_mcap=False)
+    status_path = ActorPaths.of(tmp_path, acfg).status
+    try:
+        with caplog.at_level(logging.INFO, logger="romannet.actor"):
+            thread = threading.Thread(target=run_actor, args=(cfg, tmp_path, env, client, NoWeights(), stop),
+                                      kwargs={"actor_cfg": acfg})
+            thread.start()
+            status = _wait_until_paused(status_path)
+            assert status["pause_kind"] == "waiting" and status["server_reachable"] is True
+            assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+            client.give_up.set()
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and (read_status(status_path) or {}).get("pause_kind") != "outage":
+                time.sleep(0.05)
+            status = read_status(status_path)
+            assert status["paused"] and status["pause_kind"] == "outage" and status["actions"] == 2
+            warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+            assert any(m.startswith("actor paused: spool full") for m in warnings)
+            stop.set()
+            thread.join(30)
+            assert not thread.is_alive()
+    finally:
+        client.give_up.set()
+        env.close()
 
 
 def test_pauses_when_spool_full_and_resends_after_restart(tmp_path: Path, cfg: Config,
@@ -218,6 +266,7 @@ def test_pauses_when_spool_full_and_resends_after_restart(tmp_path: Path, cfg: C
         status = _wait_until_paused(status_path)
         assert status["actions"] == 2
         assert "spool full" in status["pause_reason"] and status["server_reachable"] is False
+        assert status["pause_kind"] == "outage"
         stop.set()
         thread.join(30)
         assert not thread.is_alive()

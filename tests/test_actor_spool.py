@@ -13,7 +13,7 @@ import pytest
 from _replay_helpers import cfg as replay_cfg
 from _replay_helpers import tr
 
-from romannet.actor.sender import Sender, item_key
+from romannet.actor.sender import Sender, SenderStats, item_key, spool_pause
 from romannet.actor.spool import Spool
 from romannet.common.replay_client import RateLimitedError
 from romannet.common.wire import InsertAckMsg, TransitionMsg, encode_transition
@@ -203,7 +203,7 @@ def test_rate_limited_inserts_are_pacing_not_an_outage(tmp_path: Path, caplog: p
         sender.stop(flush_s=0.5)
     stats = sender.stats()
     assert stats.paced == 4 and stats.failures == 0 and stats.acked == 2 and stats.sent == 6
-    assert stats.reachable and not stats.pacing and stats.last_error == ""
+    assert stats.reachable and stats.pacing and stats.last_error == ""  # pacing lasts until a failure
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
     told = [r for r in caplog.records if r.levelno == logging.INFO and "paces this actor" in r.getMessage()]
     assert len(told) == 1
@@ -231,3 +231,13 @@ def test_pacing_reply_ends_an_outage(tmp_path: Path, caplog: pytest.LogCaptureFi
     assert stats.failures == 1 and stats.paced == 1 and stats.acked == 1 and stats.reachable
     messages = [r.getMessage() for r in caplog.records]
     assert sum("unreachable" in m for m in messages) == 1 and sum("reachable again" in m for m in messages) == 1
+
+
+def test_spool_pause_kinds() -> None:
+    """A full spool is an outage once a request failed, pacing after the rate limiter answered, else waiting."""
+    full = "spool full: 2 transitions"
+    assert spool_pause(SenderStats(), full) == ("waiting", f"waiting for the replay server to acknowledge; {full}")
+    kind, reason = spool_pause(SenderStats(pacing=True), full)
+    assert kind == "paced" and reason.startswith("paced by the learner") and reason.endswith(full)
+    kind, reason = spool_pause(SenderStats(pacing=False, reachable=False, last_error="NoReplyError: x"), full)
+    assert kind == "outage" and "is the replay server reachable? last send error: NoReplyError: x" in reason

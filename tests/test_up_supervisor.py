@@ -208,13 +208,15 @@ def test_moving_pick_rate_and_metrics_tail(tmp_path: Path) -> None:
 def test_progress_line_tells_a_paced_actor_from_a_paused_one() -> None:
     """Waiting for a slow learner is routine ("paced"); a spool full because the server is gone is news."""
     snap = FleetSnapshot(actions=12, actors={
-        "a0": {"weights_version": 3, "paused": True, "pause_reason": "paced by the learner (...); spool full"},
-        "a1": {"weights_version": 3, "paused": True, "pause_reason": "spool full: ...; is the replay server "
-                                                                  "reachable?"},
-        "a2": {"weights_version": 2, "paused": False}})
+        "a0": {"weights_version": 3, "paused": True, "pause_kind": "paced"},
+        "a1": {"weights_version": 3, "paused": True, "pause_kind": "outage"},
+        "a2": {"weights_version": 2, "paused": False},
+        "a3": {"weights_version": 3, "paused": True, "pause_kind": "waiting"},
+        "a4": {"weights_version": 3, "paused": True, "pause_kind": "robot"},
+        "a5": {"weights_version": 1, "paused": True}})  # a status from before pause_kind existed
     line = format_line(snap, max_actions=100)
     assert "actions 12/100" in line
-    assert "a0:v3 paced a1:v3 PAUSED a2:v2" in line
+    assert "a0:v3 paced a1:v3 PAUSED a2:v2 a3:v3 waiting a4:v3 PAUSED a5:v1 PAUSED" in line
 
 
 def test_prepare_run_flags_fresh_and_resume(tmp_path: Path) -> None:
