@@ -7,7 +7,7 @@ Outcomes of one insert (the item is the spool's oldest; it is resent until one o
 * ack "rejected", or an error reply that resending cannot cure (undecodable, oversized, wrong shape) -> the
   item moves to the spool's rejected/ folder with the reason and is logged; it is never resent.
 * "rate_limited" (RateLimitedError): the server is up, and its samples-per-insert limiter held the insert
-  back for the whole wait because the learner lags: pacing, not an outage. The same item is resent at once
+  back for the whole wait because the learner lags: pacing, not an outage. The same item is resent 50 ms later
   (the server itself did the waiting); the server stays reachable; one INFO line the first time only.
 * no reply (NoReplyError), a transient error reply (shutting_down, internal) or any other exception -> the
   server is treated as unreachable: wait (exponential backoff, resend_backoff_initial_s doubling up to
@@ -49,8 +49,8 @@ class SenderStats:
     duplicates: int = 0
     rejected: int = 0  # moved to rejected/, never resent
     failures: int = 0  # requests that got no usable answer (resent later)
-    reachable: bool = True  # False from the first failure until the next acknowledgement
-    paced: int = 0  # inserts the server's rate limiter held back (the learner lags), resent at once
+    reachable: bool = True  # False from the first failure until the server next answers (an ack or a pacing reply)
+    paced: int = 0  # inserts the server's rate limiter held back (the learner lags), resent 50 ms later
     pacing: bool = False  # True from a pacing reply until the next failure (acks in between keep it)
     last_error: str = ""
 
