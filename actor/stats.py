@@ -104,7 +104,8 @@ class ActorStats:
             "weights_version": self.weights_version, "initial_weights": self.initial_weights,
             "weights_versions_used": len(self.versions_used), "weights_versions_recent": self.recent_versions,
             "explore_rate": self.explore_rate, "explore_rate_received": self.explore_rate_received,
-            "paused": self.paused, "pause_kind": self.pause_kind, "pause_reason": self.pause_reason, "last_done_reason": self.last_done_reason,
+            "paused": self.paused, "pause_kind": self.pause_kind, "pause_reason": self.pause_reason,
+            "last_done_reason": self.last_done_reason,
         }
 
 
