@@ -31,9 +31,10 @@ from .spool import Spool
 
 log = logging.getLogger(__name__)
 
-# Error replies of the replay server after which the same bytes may well succeed later.
-TRANSIENT_REASONS = frozenset({"rate_limited", "shutting_down", "internal"})
-PACING_REASON = "rate_limited"  # the learner lags: the server holds inserts back (see the module docstring)
+# Error replies of the replay server after which the same bytes may well succeed later: pacing (the learner
+# lags and the server holds inserts back, see the module docstring) and the transient failures.
+PACING_REASON = "rate_limited"
+TRANSIENT_REASONS = frozenset({"shutting_down", "internal"})
 # Pause after a pacing reply before the resend: the server held the insert for its wait already, so only a
 # reply that came back at once (a server configured with no wait) needs this to avoid a tight loop.
 _PACED_RESEND_S = 0.05

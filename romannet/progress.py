@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
+from romannet.common.fsutil import write_json_atomic
+
 log = logging.getLogger(__name__)
 
 _CLEAR_LINE = "\r\033[K"
@@ -130,8 +132,6 @@ class ActorLedger:
     def save(self) -> None:
         if self.path is None:
             return
-        from romannet.common.fsutil import write_json_atomic
-
         self.path.parent.mkdir(parents=True, exist_ok=True)
         write_json_atomic(self.path, {"carried": self.carried, "retired": sorted(self._retired, key=repr)})
 

@@ -196,10 +196,8 @@ def test_rate_limited_inserts_are_pacing_not_an_outage(tmp_path: Path, caplog: p
     client = PacingClient("rate_limited", times=4)
     sender = Sender(spool, client, insert_timeout_s=1.0, backoff_initial_s=10.0, backoff_max_s=10.0)
     with caplog.at_level(logging.DEBUG, logger="romannet.actor.sender"):
-        started = time.monotonic()
         sender.start()
-        assert spool.wait_until_empty(5.0)
-        assert time.monotonic() - started < 5.0
+        assert spool.wait_until_empty(5.0)  # under the 10 s backoff a failure would have cost
         sender.stop(flush_s=0.5)
     stats = sender.stats()
     assert stats.paced == 4 and stats.failures == 0 and stats.acked == 2 and stats.sent == 6
