@@ -286,6 +286,8 @@ class Trainer:
             rot_losses = ((rot_exec - rot_target) ** 2).sum(dim=1)
         rot_losses = rot_losses * rot_mask
         item_losses = q_losses + cfg.rotation_loss_weight * rot_losses
+        if cfg.executed_pixel_weight > 0:  # the paper's L_t at the executed pixel, beside the support's loss
+            item_losses = item_losses + cfg.executed_pixel_weight * huber(q_exec - y, cfg.huber_delta)
         with torch.no_grad():
             err = (q_exec - y).detach()
             for k, i in enumerate(idx):

@@ -296,3 +296,30 @@ def test_rotation_failure_weight_turns_the_angle_away_from_a_failed_pick():
         load_config(overrides=["learner.train_rotation_on_success_only=false", "learner.rotation_failure_weight=0.5"])
     with pytest.raises(ConfigError, match=r"\[0, 10\]"):
         load_config(overrides=["learner.rotation_failure_weight=-1"])
+
+
+def test_executed_pixel_weight_adds_the_papers_loss_at_the_executed_pixel():
+    """learner.executed_pixel_weight w: the item loss is the support's mean loss + w * Huber(Q(s_t, a_t) - Y_t)
+    (the paper's L_t), so a peak of Q at a failed action's pixel is trained down far faster than by the mean
+    over the support, where it weighs 1/N."""
+    from romannet.common.config import load_config
+    from romannet.common.errors import ConfigError
+
+    row, col = 9, 17
+    fail = H.transition(primitive="push", seed=3, row=row, col=col, success=False, reward=0.0, done=False)
+    base = H.trainer(loss_reduction="mean").train_step([(fail, 1.0, 0)])
+    weighted = H.trainer(loss_reduction="mean", executed_pixel_weight=2.0).train_step([(fail, 1.0, 0)])
+    assert weighted.td_errors == base.td_errors  # same init, same forward pass
+    td = base.td_errors[0]
+    assert td > 0.01
+    assert weighted.loss == pytest.approx(base.loss + 2.0 * float(huber(torch.tensor(td))), rel=1e-5)
+
+    tds = {}  # |Q(s_t, a_t) - 0| before each of five updates on the failed push, at the paper's lr
+    for w in (0.0, 1.0):
+        t = H.trainer(loss_reduction="mean", executed_pixel_weight=w)
+        tds[w] = [t.train_step([(fail, 1.0, 0)]).td_errors[0] for _ in range(5)]
+    assert tds[0.0][-1] > 0.9 * td, tds  # the mean over the support barely moves the pixel
+    assert min(tds[1.0]) < 0.25 * td, tds  # the paper's L_t takes it most of the way to its label
+    for bad in ("-1", "101", "nan"):
+        with pytest.raises(ConfigError, match="executed_pixel_weight"):
+            load_config(overrides=[f"learner.executed_pixel_weight={bad}"])
