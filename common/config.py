@@ -120,6 +120,11 @@ class ModelConfig:
     # second harmonic (cos 2k theta, sin 2k theta), which stays trainable when two grasps 90 degrees apart are
     # both right (a cube: the first harmonic's targets cancel there; see common/model.py).
     rotation_harmonics: int = 1
+    # Initial Q head: "default" = PyTorch's init (Q maps start with peaks of about +-2 that the greedy argmax
+    # finds, while returns lie in [0, 2] and the support losses train them down only where an action was
+    # tried); "zero" = the 1x1 Q head's weights and bias start at 0, so every Q map starts flat at 0 and
+    # grows only where training puts value (the trunk still learns: its gradient flows once the head moves).
+    q_head_init: Literal["default", "zero"] = "default"
     # Inference numerics: "auto" picks bf16 where the CPU supports it natively, else fp32.
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     channels_last: bool = True
@@ -131,6 +136,8 @@ class ModelConfig:
         require(0.0 <= self.dropout < 1.0, "model.dropout", self.dropout, "must be in [0, 1)")
         require(self.rotation_harmonics in (1, 2), "model.rotation_harmonics", self.rotation_harmonics,
                 "must be 1 (cos/sin of the angle) or 2 (also its second harmonic)")
+        require(self.q_head_init in ("default", "zero"), "model.q_head_init", self.q_head_init,
+                "must be 'default' (PyTorch's init) or 'zero' (Q maps start flat at 0)")
         require(self.num_threads >= 0, "model.num_threads", self.num_threads, "must be >= 0 (0 = torch default)")
 
 

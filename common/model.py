@@ -61,7 +61,7 @@ class GRConvNet(nn.Module):
     """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2 * harmonics, h, w): cos, sin, ...)."""
 
     def __init__(self, channels: int = 32, residual_blocks: int = 5, dropout: float = 0.0, in_channels: int = 4,
-                 rotation_harmonics: int = 1):
+                 rotation_harmonics: int = 1, zero_q_head: bool = False):
         super().__init__()
         c = channels
         self.conv1 = nn.Conv2d(in_channels, c, 9, padding=4)
@@ -80,6 +80,9 @@ class GRConvNet(nn.Module):
         self.dropout = nn.Dropout(p=dropout)
         self.q_head = nn.Conv2d(c, 1, 1)
         self.rot_head = nn.Conv2d(c, 2 * rotation_harmonics, 1)
+        if zero_q_head:  # model.q_head_init = "zero": every Q map starts flat at 0
+            nn.init.zeros_(self.q_head.weight)
+            nn.init.zeros_(self.q_head.bias)
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         h, w = x.shape[-2:]
@@ -107,7 +110,8 @@ class RoManNet(nn.Module):
             torch.manual_seed(seed)
             self.nets = nn.ModuleDict({
                 p: GRConvNet(cfg.channels, cfg.residual_blocks, cfg.dropout,
-                             rotation_harmonics=cfg.rotation_harmonics) for p in PRIMITIVES
+                             rotation_harmonics=cfg.rotation_harmonics, zero_q_head=cfg.q_head_init == "zero")
+                for p in PRIMITIVES
             })
 
     def forward(self, x: Tensor, primitive: str) -> tuple[Tensor, Tensor]:
