@@ -122,9 +122,10 @@ class ModelConfig:
     rotation_harmonics: int = 1
     # Initial Q head: "default" = PyTorch's init (Q maps start with peaks of about +-2 that the greedy argmax
     # finds, while returns lie in [0, 2] and the support losses train them down only where an action was
-    # tried); "zero" = the 1x1 Q head's weights and bias start at 0, so every Q map starts flat at 0 and
-    # grows only where training puts value (the trunk still learns: its gradient flows once the head moves).
-    q_head_init: Literal["default", "zero"] = "default"
+    # tried); "small" = that init times 0.01, so every Q map starts within a few hundredths of 0, below any
+    # reward, and its peaks come from what was learned. (Not zero: a flat map gives the argmax and the
+    # exploration candidates no order but the pixel index, and failures, labelled 0, give it no gradient.)
+    q_head_init: Literal["default", "small"] = "default"
     # Inference numerics: "auto" picks bf16 where the CPU supports it natively, else fp32.
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     channels_last: bool = True
@@ -136,8 +137,8 @@ class ModelConfig:
         require(0.0 <= self.dropout < 1.0, "model.dropout", self.dropout, "must be in [0, 1)")
         require(self.rotation_harmonics in (1, 2), "model.rotation_harmonics", self.rotation_harmonics,
                 "must be 1 (cos/sin of the angle) or 2 (also its second harmonic)")
-        require(self.q_head_init in ("default", "zero"), "model.q_head_init", self.q_head_init,
-                "must be 'default' (PyTorch's init) or 'zero' (Q maps start flat at 0)")
+        require(self.q_head_init in ("default", "small"), "model.q_head_init", self.q_head_init,
+                "must be 'default' (PyTorch's init) or 'small' (that init times 0.01: Q maps start near 0)")
         require(self.num_threads >= 0, "model.num_threads", self.num_threads, "must be >= 0 (0 = torch default)")
 
 

@@ -40,6 +40,7 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 DEPTH_OFFSET_M = 0.01  # depth channel = (d − offset) / scale, VPG's normalisation of the height map
 DEPTH_SCALE_M = 0.03
 SYMMETRIC_PRIMITIVES = frozenset({"pick", "place"})
+Q_HEAD_SCALES = {"default": 1.0, "small": 0.01}  # model.q_head_init: the Q head's initial weights times this
 
 
 class ResidualBlock(nn.Module):
@@ -61,7 +62,7 @@ class GRConvNet(nn.Module):
     """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2 * harmonics, h, w): cos, sin, ...)."""
 
     def __init__(self, channels: int = 32, residual_blocks: int = 5, dropout: float = 0.0, in_channels: int = 4,
-                 rotation_harmonics: int = 1, zero_q_head: bool = False):
+                 rotation_harmonics: int = 1, q_head_scale: float = 1.0):
         super().__init__()
         c = channels
         self.conv1 = nn.Conv2d(in_channels, c, 9, padding=4)
@@ -80,9 +81,10 @@ class GRConvNet(nn.Module):
         self.dropout = nn.Dropout(p=dropout)
         self.q_head = nn.Conv2d(c, 1, 1)
         self.rot_head = nn.Conv2d(c, 2 * rotation_harmonics, 1)
-        if zero_q_head:  # model.q_head_init = "zero": every Q map starts flat at 0
-            nn.init.zeros_(self.q_head.weight)
-            nn.init.zeros_(self.q_head.bias)
+        if q_head_scale != 1.0:  # model.q_head_init = "small": every Q map starts within a few hundredths of 0
+            with torch.no_grad():
+                self.q_head.weight.mul_(q_head_scale)
+                self.q_head.bias.mul_(q_head_scale)
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         h, w = x.shape[-2:]
@@ -110,7 +112,7 @@ class RoManNet(nn.Module):
             torch.manual_seed(seed)
             self.nets = nn.ModuleDict({
                 p: GRConvNet(cfg.channels, cfg.residual_blocks, cfg.dropout,
-                             rotation_harmonics=cfg.rotation_harmonics, zero_q_head=cfg.q_head_init == "zero")
+                             rotation_harmonics=cfg.rotation_harmonics, q_head_scale=Q_HEAD_SCALES[cfg.q_head_init])
                 for p in PRIMITIVES
             })
 

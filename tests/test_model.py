@@ -255,36 +255,28 @@ def test_two_harmonic_model_has_a_four_channel_rotation_head():
         load_tensors(RoManNet(ModelConfig(channels=8, residual_blocks=1)), state_dict_to_tensors(model))
 
 
-def test_zero_q_head_init_starts_every_q_map_flat_and_keeps_the_rest_of_the_init():
-    """model.q_head_init = "zero": Q maps are exactly 0 everywhere before training (no peak for the greedy
-    argmax to find), every other weight is the default init of the same seed, and the trunk still learns
-    once the head has moved."""
+def test_small_q_head_init_scales_the_q_head_and_keeps_the_rest_of_the_init():
+    """model.q_head_init = "small": the Q head is PyTorch's init of the same seed times 0.01, so Q maps start
+    a hundred times flatter (not flat: the argmax and the exploration candidates still have an order, and
+    failures labelled 0 still give a gradient); every other weight, and the rotation head's output, is the
+    default init's."""
     small = dict(channels=8, residual_blocks=1)
-    zero = RoManNet(ModelConfig(q_head_init="zero", **small), seed=3)
+    scaled = RoManNet(ModelConfig(q_head_init="small", **small), seed=3)
     default = RoManNet(ModelConfig(**small), seed=3)
     x = torch.randn(2, 4, 32, 32)
     for p in PRIMITIVES:
-        zero.nets[p].eval()
+        scaled.nets[p].eval()
         default.nets[p].eval()
         with torch.no_grad():
-            q, rot = zero(x, p)
+            q, rot = scaled(x, p)
             q_default, rot_default = default(x, p)
-        assert torch.count_nonzero(q) == 0
-        assert float(q_default.std()) > 1e-3  # PyTorch's init is not flat
+        assert torch.allclose(q, 0.01 * q_default, atol=1e-7)
+        assert float(q.std()) > 0  # an order for the argmax
         assert torch.equal(rot, rot_default)
-    zero_sd, default_sd = zero.state_dict(), default.state_dict()
-    assert zero_sd.keys() == default_sd.keys()
-    for k, v in zero_sd.items():
+    scaled_sd, default_sd = scaled.state_dict(), default.state_dict()
+    assert scaled_sd.keys() == default_sd.keys()
+    for k, v in scaled_sd.items():
         if ".q_head." not in k:
             assert torch.equal(v, default_sd[k]), k
-    net = zero.nets["push"].train()
-    opt = torch.optim.SGD(net.parameters(), lr=0.1)
-    trunk_before = net.conv1.weight.detach().clone()
-    for _ in range(2):  # the first step moves the head only; the second reaches the trunk through it
-        opt.zero_grad()
-        q, _ = net(x)
-        ((q - 1.0) ** 2).mean().backward()
-        opt.step()
-    assert not torch.equal(net.conv1.weight, trunk_before)
     with pytest.raises(ConfigError, match="q_head_init"):
-        ModelConfig(q_head_init="small")
+        ModelConfig(q_head_init="zero")
