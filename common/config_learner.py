@@ -39,7 +39,7 @@ class LearnerConfig:
     # Extra weight on the executed pixel's own Huber(Q(s_t, a_t) - Y_t), the paper's L_t, added to the support
     # loss. With "mean" the executed pixel weighs 1/N of an N-pixel support, so a sharp peak of Q, which is
     # where the greedy argmax lands, is trained down only slowly (measured: a failed push's Q fell from 0.7
-    # to 0.43-0.62 in 30 updates on those four items alone, docs/results.md); 1 gives it the paper's weight.
+    # to 0.43-0.63 in 30 updates on those four items alone, docs/results.md); 1 gives it the paper's weight.
     # 0 = the support loss alone.
     executed_pixel_weight: float = 0.0
     target_network: bool = False  # bootstrap V(s_{t+1}) from a lagged copy instead of the online net

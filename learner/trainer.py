@@ -8,8 +8,9 @@ One `train_step(batch)`:
 3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net; the
    Huber loss over each label's support (+ the rotation loss on successes, and on failures toward the
    opposite angle with learner.rotation_failure_weight: at the executed pixel, or over the support with
-   learner.rotation_support = "kernel"), times the item's importance-sampling weight, averaged over the
-   batch (with learner.augment_rotation each item is first turned by a random yaw about its executed pixel,
+   learner.rotation_support = "kernel"; + learner.executed_pixel_weight x the paper's Huber(Q(s_t, a_t) - Y_t)
+   at the executed pixel), times the item's importance-sampling weight, averaged over the batch (with
+   learner.augment_rotation each item is first turned by a random yaw about its executed pixel,
    learner/augment.py). Only the executed primitives' nets get gradients; the others keep `.grad is None`,
    so SGD skips them entirely (no weight decay, no momentum).
 4. One SGD step; the exploration rate is updated with the paper's L_t (the Huber of the executed pixel's
