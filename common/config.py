@@ -17,6 +17,7 @@ import tomllib
 from .config_actor import ActorConfig
 from .config_calibration import CalibrationConfig
 from .config_learner import LearnerConfig
+from .config_pacing import check_pacing
 from .config_replay import ReplayConfig
 from .config_robot import RealSenseConfig, RobotConfig
 from .config_sim import SimConfig
@@ -249,6 +250,7 @@ class Config:
         require(bool(self.run_id) and all(c.isalnum() or c in "-_" for c in self.run_id), "run_id",
                 self.run_id, "must be non-empty and use only letters, digits, '-' and '_' (it is a Zenoh key chunk)")
         require(0 <= self.seed < 2**63, "seed", self.seed, "must be a non-negative integer")
+        check_pacing(self.replay, self.learner)
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:

@@ -191,8 +191,17 @@ def _check_run(up: Up, expected_actions: int, learning: bool = True) -> dict[str
     return summary
 
 
+# The recipes' pacing (configs/experiments/*.toml): the replay server holds an insert's acknowledgement while
+# the learner is more than a few samples behind, and a 2-item spool makes the actor wait for it. Unpaced, a
+# fast machine's actors finished all 40 actions before the learner's second weights version (CI, 2026-12-02).
+PACED = ["replay.samples_per_insert=2.0", "replay.max_batch_size=4", "replay.spi_tolerance=8.0",
+         "actor.spool_max_items=2"]
+
+
 def test_up_runs_the_fleet_to_max_actions(tmp_path: Path, ups: list[Up]) -> None:
-    up = Up(tmp_path, "fleet", 40)
+    """Learner-paced as the recipes are, so each actor's share of the 40 actions spans several weights
+    versions however fast the actors are compared with the learner."""
+    up = Up(tmp_path, "fleet", 40, *[arg for s in PACED for arg in ("--set", s)])
     ups.append(up)
     assert up.wait() == 0, up.output()
     summary = _check_run(up, 40)
