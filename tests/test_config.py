@@ -97,3 +97,38 @@ def test_every_experiment_recipe_loads():
         assert cfg.learner.publish_every_updates == 1, path  # the actor acts on the newest net
         if cfg.exploration.policy == "lae":
             assert cfg.exploration.lae_min_rate == 0.1, path
+
+
+def _flat_config(path) -> dict:
+    import dataclasses
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out: dict = {}
+        for key, value in d.items():
+            out.update(flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
+        return out
+
+    return flat(dataclasses.asdict(load_config(path)))
+
+
+def test_ablation_recipes_differ_from_the_full_method_only_in_what_they_ablate():
+    """An ablation compares one change: every other setting (schedule, loss, model) must be the full recipe's,
+    or its curve measures something else too. lae_min_rate only acts under LAE (0 is the default)."""
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1] / "configs" / "experiments"
+    exploration = {"exploration.policy": "epsilon_greedy", "exploration.lae_min_rate": 0.0}
+    x_only = {"reward.use_progress": False, "reward.use_gaussian": False}
+    ablations = {
+        ("clutter", "clutter-baseline"): {**x_only, **exploration},
+        ("clutter", "clutter-tpg"): exploration,
+        ("stacking", "stacking-baseline"): {**x_only, **exploration},
+        ("stacking", "stacking-tpg"): exploration,
+        ("stacking", "stacking-tp"): {"reward.use_gaussian": False},
+        ("stacking", "stacking-paper-norm"): {"reward.kernel_normalization": "paper"},
+    }
+    for (full_name, name), changed in ablations.items():
+        full, ablation = _flat_config(root / f"{full_name}.toml"), _flat_config(root / f"{name}.toml")
+        differs = {k for k in full if full[k] != ablation[k]} - {"run_id"}
+        assert differs == set(changed), (name, differs ^ set(changed))
+        assert all(ablation[k] == v for k, v in changed.items()), name
+        assert full["exploration.policy"] == "lae" and full["reward.use_progress"] and full["reward.use_gaussian"]
