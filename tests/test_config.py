@@ -5,7 +5,7 @@ import dataclasses
 import pytest
 
 from romannet.common.config import Config, ExplorationConfig, RewardConfig, WorkspaceConfig, load_config
-from romannet.common.configbase import dumps_toml, write_toml
+from romannet.common.configbase import dumps_toml, to_dict, write_toml
 from romannet.common.errors import ConfigError
 
 
@@ -100,15 +100,13 @@ def test_every_experiment_recipe_loads():
 
 
 def _flat_config(path) -> dict:
-    import dataclasses
-
     def flat(d: dict, prefix: str = "") -> dict:
         out: dict = {}
         for key, value in d.items():
             out.update(flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
         return out
 
-    return flat(dataclasses.asdict(load_config(path)))
+    return flat(to_dict(load_config(path)))
 
 
 def test_ablation_recipes_differ_from_the_full_method_only_in_what_they_ablate():
