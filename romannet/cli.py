@@ -334,11 +334,14 @@ def build_parser() -> argparse.ArgumentParser:
     add_eval_arguments(p)
 
     p = verb("plot", "learning curves (action success rate and efficiency over training actions) of run "
-             "directories, one line per run, into one PNG", cmd_plot)
+             "directories into one PNG: one line per run, or per label shared by several runs (their mean "
+             "and range)", cmd_plot)
     p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
     p.add_argument("--out", required=True, metavar="FILE.png")
     p.add_argument("--window", type=int, default=200, metavar="N", help="sliding window in actions (200)")
-    p.add_argument("--labels", nargs="+", metavar="LABEL", help="one label per run (default: directory names)")
+    p.add_argument("--labels", nargs="+", metavar="LABEL",
+                   help="one label per run (default: directory names); runs given the same label are seeds of "
+                   "one variant, drawn as their mean with a min-max band")
 
     p = verb("router", "run a Zenoh router (zenoh-python in router mode) for a multi-machine fleet until "
              "SIGTERM/SIGINT; the same config files work with zenohd (docs/deploy.md)", cmd_router)

@@ -149,6 +149,18 @@ def test_plot_draws_curves_from_recorded_episodes(tmp_path: Path) -> None:
     summary = json.loads(proc.stdout)
     assert summary["a"]["actions"] == 12 and summary["b"]["episodes"] == stats.episodes
     assert out.stat().st_size > 1000
+    # Runs sharing a label are seeds of one variant: one mean line, each run's numbers kept.
+    seeds = tmp_path / "seeds.png"
+    proc = romannet("plot", str(run_dir), str(run_dir), str(run_dir), "--labels", "v", "v", "w", "--window", "5",
+                    "--out", str(seeds))
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert list(summary) == ["v", "w"] and len(summary["v"]["runs"]) == 2
+    assert all(r["actions"] == 12 for r in summary["v"]["runs"])
+    assert summary["v"]["final_success_rate"] == pytest.approx(summary["w"]["final_success_rate"])
+    lo, hi = summary["v"]["final_success_rate_range"]
+    assert lo == hi == pytest.approx(summary["w"]["final_success_rate"])
+    assert summary["v"]["task"] == "stacking" and seeds.stat().st_size > 1000
 
 
 def test_paper_protocol_learns_within_a_run_and_resets_to_the_checkpoint(tmp_path: Path) -> None:

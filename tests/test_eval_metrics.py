@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from romannet.evaluate.curves import TrainingAction, windowed
+from romannet.evaluate.curves import TrainingAction, group_by_label, mean_curve, windowed
 from romannet.evaluate.metrics import (
     RunLog,
     StepLog,
@@ -175,6 +175,32 @@ def test_windowed_curves_count_failed_episodes_against_efficiency():
     assert list(x) == [2] and math.isclose(rate[0], 0.5)
     assert windowed([], 5)[0].size == 0
     assert np.all((rate >= 0) & (rate <= 1))
+
+
+def test_seeds_of_a_variant_average_over_the_actions_all_of_them_reach():
+    a = (np.array([3, 4, 5, 6]), np.array([0.2, 0.4, 0.6, 0.8]), np.array([0.0, 0.0, 0.5, 0.5]))
+    b = (np.array([3, 4, 5]), np.array([0.4, 0.0, 0.2]), np.array([0.0, 0.25, 0.25]))  # stopped one action early
+    m = mean_curve([a, b])
+    assert list(m["x"]) == [3, 4, 5]
+    assert np.allclose(m["rate"], [0.3, 0.2, 0.4]) and np.allclose(m["rate_lo"], [0.2, 0.0, 0.2])
+    assert np.allclose(m["rate_hi"], [0.4, 0.4, 0.6])
+    assert np.allclose(m["eff"], [0.0, 0.125, 0.375]) and np.allclose(m["eff_hi"], [0.0, 0.25, 0.5])
+    one = mean_curve([a])
+    assert np.array_equal(one["rate"], a[1]) and np.array_equal(one["rate_lo"], one["rate_hi"])
+    with pytest.raises(ValueError, match="no curves"):
+        mean_curve([])
+
+
+def test_runs_sharing_a_label_are_grouped_in_the_order_labels_first_appear():
+    runs = [Path("r/base-s1"), Path("r/full-s1"), Path("r/base-s2"), Path("r/full-s2")]
+    groups = group_by_label(runs, ["baseline", "full", "baseline", "full"])
+    assert list(groups) == ["baseline", "full"]
+    assert groups["baseline"] == [runs[0], runs[2]] and groups["full"] == [runs[1], runs[3]]
+    assert list(group_by_label(runs[:2], None)) == ["base-s1", "full-s1"]  # default: one line per run
+    same_name = [Path("a/run"), Path("b/run")]
+    assert list(group_by_label(same_name, None)) == ["a/run", "b/run"]  # not silently merged
+    with pytest.raises(ValueError, match="3 labels for 4 runs"):
+        group_by_label(runs, ["a", "b", "c"])
 
 
 def test_repeated_failure_count_on_hand_made_step_records():

@@ -1,5 +1,6 @@
 """Learning curves from run directories, like the paper's ablation figure: action success rate and action
-efficiency over training steps, one line per run (`romannet plot RUN_DIR...`).
+efficiency over training steps, one line per run (`romannet plot RUN_DIR...`); runs given the same label are
+seeds of one variant: their mean is drawn, with the band between the lowest and highest run.
 
 Source: the /step records of every episode file under RUN_DIR/episodes/ (what the actors did, in order of
 their end time across actors). A file cut short (an actor killed mid-episode) is read up to its last whole
@@ -105,29 +106,89 @@ def windowed(actions: Sequence[TrainingAction], window: int) -> tuple[np.ndarray
     return idx[start:], rate[start:], eff[start:]
 
 
+def mean_curve(curves: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Mean, lowest and highest of several runs' windowed curves (x, rate, eff) at the action indices all of
+    them reach (a run stopped early shortens the whole group's curve rather than biasing its tail)."""
+    if not curves:
+        raise ValueError("no curves to average")
+    common = curves[0][0]
+    for x, _, _ in curves[1:]:
+        common = np.intersect1d(common, x)
+    rates = np.stack([rate[np.isin(x, common)] for x, rate, _ in curves])
+    effs = np.stack([eff[np.isin(x, common)] for x, _, eff in curves])
+    return {"x": common, "rate": rates.mean(axis=0), "rate_lo": rates.min(axis=0), "rate_hi": rates.max(axis=0),
+            "eff": effs.mean(axis=0), "eff_lo": effs.min(axis=0), "eff_hi": effs.max(axis=0)}
+
+
+def group_by_label(run_dirs: Sequence[Path], labels: Sequence[str] | None) -> dict[str, list[Path]]:
+    """Runs per label, in the order labels first appear (runs sharing a label are seeds of one variant)."""
+    if not labels:  # directory names, or whole paths where two runs share a name
+        names = [p.name for p in run_dirs]
+        labels = [n if names.count(n) == 1 else str(p) for n, p in zip(names, run_dirs, strict=True)]
+    labels = list(labels)
+    if len(labels) != len(run_dirs):
+        raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
+    groups: dict[str, list[Path]] = {}
+    for run_dir, label in zip(run_dirs, labels, strict=True):
+        groups.setdefault(label, []).append(run_dir)
+    return groups
+
+
+def _run_summary(run_dir: Path, actions: Sequence[TrainingAction], rate: np.ndarray, eff: np.ndarray,
+                 meta: dict) -> dict:
+    return {"run_dir": str(run_dir), "actions": len(actions),
+            "episodes": sum(1 for a in actions if a.episode_end),
+            "completed": sum(1 for a in actions if a.episode_end == "done"),
+            "final_success_rate": float(rate[-1]) if len(rate) else None,
+            "final_efficiency": float(eff[-1]) if len(eff) else None, **meta}
+
+
+def _group_summary(runs: list[dict]) -> dict:
+    """A variant's summary over its seeds: each run's own summary, and the mean and range of their final
+    values (each run's last window, so a run cut short still counts with what it reached)."""
+    out: dict = {"runs": runs}
+    for key in ("final_success_rate", "final_efficiency"):
+        values = [r[key] for r in runs if r[key] is not None]
+        out[key] = float(np.mean(values)) if values else None
+        out[f"{key}_range"] = [float(min(values)), float(max(values))] if values else None
+    for key in ("task", "goal_stack_height"):
+        if len({r[key] for r in runs}) == 1:
+            out[key] = runs[0][key]
+    return out
+
+
 def plot_runs(run_dirs: Sequence[Path], out: Path, window: int = 200, labels: Sequence[str] | None = None) -> dict:
-    """Draw the curves of every run into `out` (PNG); returns per-run final values and counts."""
+    """Draw the curves of every run, or of every group of runs sharing a label (mean line, min-max band),
+    into `out` (PNG); returns per-label final values and counts (per run, and over the seeds of a group)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    labels = list(labels) if labels else [p.name for p in run_dirs]
-    if len(labels) != len(run_dirs):
-        raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
+    groups = group_by_label(run_dirs, labels)
     fig, ax = plt.subplots(figsize=(8, 4.5))
     summary: dict[str, dict] = {}
-    for k, (run_dir, label) in enumerate(zip(run_dirs, labels, strict=True)):
-        actions, meta = run_actions(run_dir)
-        x, rate, eff = windowed(actions, window)
+    for k, (label, dirs) in enumerate(groups.items()):
+        runs, curves = [], []
+        for run_dir in dirs:
+            actions, meta = run_actions(run_dir)
+            x, rate, eff = windowed(actions, window)
+            runs.append(_run_summary(run_dir, actions, rate, eff, meta))
+            curves.append((x, rate, eff))
         color = f"C{k}"
-        ax.plot(x, 100 * rate, color=color, label=f"{label}: action success")
-        ax.plot(x, 100 * eff, color=color, linestyle=":", label=f"{label}: action efficiency")
-        episodes = sum(1 for a in actions if a.episode_end)
-        summary[label] = {"run_dir": str(run_dir), "actions": len(actions), "episodes": episodes,
-                          "completed": sum(1 for a in actions if a.episode_end == "done"),
-                          "final_success_rate": float(rate[-1]) if len(rate) else None,
-                          "final_efficiency": float(eff[-1]) if len(eff) else None, **meta}
+        if len(dirs) == 1:
+            x, rate, eff = curves[0]
+            ax.plot(x, 100 * rate, color=color, label=f"{label}: action success")
+            ax.plot(x, 100 * eff, color=color, linestyle=":", label=f"{label}: action efficiency")
+            summary[label] = runs[0]
+            continue
+        m = mean_curve(curves)
+        name = f"{label} (mean of {len(dirs)})"
+        ax.plot(m["x"], 100 * m["rate"], color=color, label=f"{name}: action success")
+        ax.fill_between(m["x"], 100 * m["rate_lo"], 100 * m["rate_hi"], color=color, alpha=0.15, linewidth=0)
+        ax.plot(m["x"], 100 * m["eff"], color=color, linestyle=":", label=f"{name}: action efficiency")
+        ax.fill_between(m["x"], 100 * m["eff_lo"], 100 * m["eff_hi"], color=color, alpha=0.07, linewidth=0)
+        summary[label] = _group_summary(runs)
     ax.set_xlabel("training actions")
     ax.set_ylabel(f"% over the last {window} actions")
     ax.set_ylim(0, 100)
