@@ -175,20 +175,14 @@ def plot_runs(run_dirs: Sequence[Path], out: Path, window: int = 200, labels: Se
             x, rate, eff = windowed(actions, window)
             runs.append(_run_summary(run_dir, actions, rate, eff, meta))
             curves.append((x, rate, eff))
-        color = f"C{k}"
-        if len(dirs) == 1:
-            x, rate, eff = curves[0]
-            ax.plot(x, 100 * rate, color=color, label=f"{label}: action success")
-            ax.plot(x, 100 * eff, color=color, linestyle=":", label=f"{label}: action efficiency")
-            summary[label] = runs[0]
-            continue
-        m = mean_curve(curves)
-        name = f"{label} (mean of {len(dirs)})"
+        color, m = f"C{k}", mean_curve(curves)  # one run: its own curve
+        name = label if len(dirs) == 1 else f"{label} (mean of {len(dirs)})"
         ax.plot(m["x"], 100 * m["rate"], color=color, label=f"{name}: action success")
-        ax.fill_between(m["x"], 100 * m["rate_lo"], 100 * m["rate_hi"], color=color, alpha=0.15, linewidth=0)
         ax.plot(m["x"], 100 * m["eff"], color=color, linestyle=":", label=f"{name}: action efficiency")
-        ax.fill_between(m["x"], 100 * m["eff_lo"], 100 * m["eff_hi"], color=color, alpha=0.07, linewidth=0)
-        summary[label] = _group_summary(runs)
+        if len(dirs) > 1:
+            ax.fill_between(m["x"], 100 * m["rate_lo"], 100 * m["rate_hi"], color=color, alpha=0.15, linewidth=0)
+            ax.fill_between(m["x"], 100 * m["eff_lo"], 100 * m["eff_hi"], color=color, alpha=0.07, linewidth=0)
+        summary[label] = runs[0] if len(dirs) == 1 else _group_summary(runs)
     ax.set_xlabel("training actions")
     ax.set_ylabel(f"% over the last {window} actions")
     ax.set_ylim(0, 100)
