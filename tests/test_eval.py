@@ -37,9 +37,9 @@ SETS = ["model.channels=4", "model.residual_blocks=1", "model.num_threads=1", "l
         "camera.cx_px=80.0", "camera.cy_px=60.0"]
 
 
-def make_run(tmp_path: Path, sets: list[str] = SETS) -> Path:
+def make_run(tmp_path: Path, sets: list[str] = SETS, name: str = "run") -> Path:
     """A run directory with config.toml and one learner checkpoint (an untrained, seeded net)."""
-    run_dir = tmp_path / "run"
+    run_dir = tmp_path / name
     cfg = load_config(None, sets)
     write_toml(cfg, run_dir / "config.toml")
     trainer = Trainer(cfg.model, cfg.learner, cfg.reward, cfg.task, exploration_cfg=cfg.exploration)
@@ -113,6 +113,42 @@ def test_eval_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
     (out / "runs.jsonl").write_text('{"case": "h2"}\n')
     proc = romannet("eval", str(run_dir), "--runs", "1", "--out", str(out))
     assert proc.returncode == 2 and "already holds runs" in proc.stderr
+
+
+def test_eval_compares_checkpoints_on_the_same_scenes(tmp_path: Path) -> None:
+    """Two seeds of a recipe: each gets its own report under --out, both meet the same seeds, and
+    comparison.json holds each one's metrics and their mean and range."""
+    a = make_run(tmp_path, [*SETS, "seed=1"], name="stack-s1")
+    b = make_run(tmp_path, [*SETS, "seed=2"], name="stack-s2")
+    b_ckpt = next((b / "checkpoints").glob("ckpt-*"))
+    out = tmp_path / "cmp"
+    proc = romannet("eval", str(a), str(b_ckpt), "--goal-height", "2", "--runs", "2", "--workers", "1",
+                    "--protocol", "frozen", "--max-steps", "4", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    names = ["stack-s1", f"stack-s2-{b_ckpt.name}"]
+    reports = {n: json.loads((out / n / "report.json").read_text()) for n in names}
+    assert [r["seed"] for r in reports[names[0]]["runs"]] == [r["seed"] for r in reports[names[1]]["runs"]]
+    assert reports[names[1]]["checkpoint"] == str(b_ckpt)
+    cmp = json.loads((out / "comparison.json").read_text())
+    assert list(cmp["checkpoints"]) == names and list(cmp["cases"]) == ["h2"] and not cmp["interrupted"]
+    row = cmp["cases"]["h2"]
+    rates = [reports[n]["cases"]["h2"]["completion_rate"] for n in names]
+    assert [row["checkpoints"][n]["completion_rate"] for n in names] == rates
+    assert row["completion_rate"]["mean"] == pytest.approx(sum(rates) / 2)
+    assert row["completion_rate"]["min"] == min(rates) and row["completion_rate"]["n"] == 2
+    md = (out / "comparison.md").read_text()
+    assert "| h2 | stack-s1 |" in md and "**mean (min–max)**" in md and "| h2 | stack-s1 |" in proc.stdout
+
+
+def test_eval_of_several_checkpoints_checks_every_input_before_running(tmp_path: Path) -> None:
+    a = make_run(tmp_path, name="a")
+    proc = romannet("eval", str(a), str(a), "--runs", "1")
+    assert proc.returncode == 2 and "pass --out DIR" in proc.stderr
+    proc = romannet("eval", str(a), str(tmp_path / "missing"), "--runs", "1", "--out", str(tmp_path / "o1"))
+    assert proc.returncode == 2 and "missing" in proc.stderr and not (tmp_path / "o1").exists()
+    c = make_run(tmp_path, [*SETS[:7], *SETS[-6:], 'task.kind="clutter"', "task.use_push=true"], name="c")
+    proc = romannet("eval", str(a), str(c), "--runs", "1", "--out", str(tmp_path / "o2"))
+    assert proc.returncode == 2 and "need the same tests" in proc.stderr and not (tmp_path / "o2").exists()
 
 
 class _NoWeights:

@@ -238,6 +238,55 @@ def test_report_table_shows_the_papers_metrics_and_the_pooled_ones():
     assert stacking["overall"]["median_share_picked"] is None
 
 
+def _stacking_report(runs: list[RunLog], **header: object) -> dict:
+    from romannet.evaluate.report import build_report
+
+    base = {"task": "stacking", "protocol": "frozen", "checkpoint": "ckpt", "updates": 5, "runs_per_case": 2,
+            "base_seed": 100000, "workers": 1, "wall_s": 1.0, "machine": "test box"}
+    return build_report(runs, {**base, **header})
+
+
+def test_comparison_gives_each_checkpoints_metrics_and_their_spread():
+    from romannet.evaluate.compare import compare, markdown
+
+    ten_failures = "p0 " * 10
+    a = _stacking_report([run("p1 L1", ideal=2, case="h2"), run("p1 L1 p0 p1 L1 p1 L1", ideal=6, case="h4"),
+                          run("p1 L1", ideal=2, case="h2"), run(ten_failures, end="consecutive_failures", case="h4")])
+    b = _stacking_report([run("p0 p1 L1", ideal=2, case="h2"), run(ten_failures, end="consecutive_failures", case="h4"),
+                          run("p1 L0", end="unstable", ideal=2, case="h2"),
+                          run(ten_failures, end="consecutive_failures", case="h4")], updates=9)
+    c = compare({"s1": a, "s2": b})
+    assert list(c["cases"]) == ["h2", "h4", "all"]
+    h2 = c["cases"]["h2"]
+    assert h2["checkpoints"]["s1"]["completion_rate"] == 1.0 and h2["checkpoints"]["s2"]["completion_rate"] == 0.5
+    assert h2["completion_rate"] == {"mean": 0.75, "min": 0.5, "max": 1.0, "n": 2}
+    assert h2["pick_success_rate"] == {"mean": 0.75, "min": 0.5, "max": 1.0, "n": 2}  # s2: its one completed run
+    assert h2["action_efficiency"]["max"] == 1.0 and h2["action_efficiency"]["min"] == pytest.approx(2 / 3)
+    h4 = c["cases"]["h4"]  # s2 completed no h4 run: no pick success or efficiency, left out of their mean
+    assert h4["completion_rate"] == {"mean": 0.25, "min": 0.0, "max": 0.5, "n": 2}
+    assert h4["pick_success_rate"] == {"mean": 0.75, "min": 0.75, "max": 0.75, "n": 1}
+    assert c["cases"]["all"]["completion_rate"]["mean"] == pytest.approx((0.75 + 0.25) / 2)
+    assert c["checkpoints"]["s2"]["updates"] == 9 and not c["interrupted"]
+    table = markdown(c)
+    assert "| h4 | s2 | 9 | 2 | 0.0 % | – | – |" in table
+    assert "| h4 | **mean (min–max)** | | | 25.0 % (0.0–50.0, n 2) | 75.0 % (75.0–75.0, n 1) |" in table
+
+
+def test_comparison_refuses_reports_of_different_tests():
+    from romannet.evaluate.compare import compare, unique_names
+
+    a = _stacking_report([run("p1 L1", ideal=2, case="h2")])
+    with pytest.raises(ValueError, match="protocol 'paper' differs"):
+        compare({"a": a, "b": {**a, "protocol": "paper"}})
+    with pytest.raises(ValueError, match="base_seed"):
+        compare({"a": a, "b": {**a, "base_seed": 7}})
+    with pytest.raises(ValueError, match="cases"):
+        compare({"a": a, "b": _stacking_report([run("p1 L1", ideal=2, case="h3")])})
+    with pytest.raises(ValueError, match="no reports"):
+        compare({})
+    assert unique_names(["a", "a", "b", "a"]) == ["a", "a-2", "b", "a-3"]
+
+
 def _cube_heightmap(centre_rc: tuple[float, float], yaw_deg: float, side_px: int = 25) -> np.ndarray:
     """A 224 x 224 heightmap with one 5 cm-high square of `side_px` pixels, turned by yaw_deg."""
     depth = np.zeros((224, 224), np.float32)

@@ -8,6 +8,13 @@ CHECKPOINT is a run directory (its newest checkpoint is used) or one checkpoint 
 config.toml gives the model, workspace, camera, reward and simulator; --task and the task flags say what
 to test on; --set changes any other field (e.g. --set sim.robot=gripper). Outputs go to
 <run>/eval/<task>-<protocol>-<time>/ (or --out): report.md, report.json, report.png and runs.jsonl.
+
+Several checkpoints (the seeds of one recipe, the variants of an ablation) are tested one after another on
+the same scenes; --out DIR is then required: each checkpoint's outputs go to DIR/<name>/ (name: its run
+directory's name, or run-ckpt for a checkpoint directory) and their comparison, with the mean and range of
+every metric over the checkpoints, to DIR/comparison.md and comparison.json:
+
+    romannet eval runs/stack-s1 runs/stack-s2 runs/stack-s3 --goal-height 4 --protocol frozen --out cmp/
 """
 
 from __future__ import annotations
@@ -19,7 +26,9 @@ import logging
 import os
 import platform
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from romannet.common.errors import RomannetError
 
@@ -29,7 +38,9 @@ EXAMPLE = "romannet eval runs/stack-h4 --task stacking --goal-height 2 3 4 5 --r
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("checkpoint", metavar="CHECKPOINT", help="a run directory (newest checkpoint) or a ckpt-* directory")
+    p.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT",
+                   help="a run directory (newest checkpoint) or a ckpt-* directory; several: compared on the "
+                        "same scenes (needs --out)")
     p.add_argument("--task", choices=["clutter", "arrangement", "stacking"], help="default: the run's task")
     p.add_argument("--protocol", choices=["paper", "frozen"], default="paper",
                    help="paper: weights reset to the checkpoint every run, learning within the run (default); "
@@ -44,7 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, default=0, metavar="N",
                    help="actions per run before it ends as step_limit (0: 5x the ideal count, at least 30)")
     p.add_argument("--workers", type=int, default=0, metavar="N", help="processes (0: one per CPU core)")
-    p.add_argument("--out", metavar="DIR", help="output directory (default: <run>/eval/<task>-<protocol>-<time>)")
+    p.add_argument("--out", metavar="DIR", help="output directory (default: <run>/eval/<task>-<protocol>-<time>); with several checkpoints "
+                        "DIR/<name>/ for each and DIR/comparison.md")
     p.add_argument("--config", metavar="FILE.toml", help="use this config instead of the run's config.toml")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="override a config field (repeatable)")
@@ -73,17 +85,36 @@ def _machine() -> str:
     return f"{platform.machine()} {cpu_model() or 'CPU'}, {os.cpu_count()} cores, torch {torch.__version__}"
 
 
-def run(args: argparse.Namespace) -> int:
+@dataclass(frozen=True)
+class CheckpointPlan:
+    """One checkpoint's evaluation, resolved and validated before any run starts."""
+
+    path: Path  # as given
+    ckpt: Path
+    run_dir: Path
+    config_path: Path
+    config_toml: str
+    state: dict
+    task: str
+    heights: list[int]
+    cases_dir: str | None
+    specs: list  # of runner.RunSpec
+
+    @property
+    def name(self) -> str:
+        """The run directory's name, plus the checkpoint's when a ckpt-* directory was given."""
+        return f"{self.run_dir.name}-{self.ckpt.name}" if self.path.resolve() == self.ckpt.resolve() else self.run_dir.name
+
+
+def plan_checkpoint(args: argparse.Namespace, path: Path) -> CheckpointPlan:
+    """Resolve a checkpoint, load and check its config, and plan its runs; RomannetError on bad input."""
     from romannet.actor.sim.arrangements import default_cases_dir, load_case
     from romannet.common.config import load_config
     from romannet.common.configbase import dumps_toml
 
-    from .metrics import completed
-    from .protocol import Progress, execute, plan_runs
-    from .report import build_report, markdown, write_outputs
-    from .runner import EvalSetup
+    from .protocol import plan_runs
 
-    ckpt, run_dir = resolve_checkpoint(Path(args.checkpoint))
+    ckpt, run_dir = resolve_checkpoint(path)
     config_path = Path(args.config) if args.config else run_dir / "config.toml"
     if not config_path.is_file():
         raise RomannetError(f"{config_path} does not exist: pass --config with the config the checkpoint was "
@@ -109,37 +140,90 @@ def run(args: argparse.Namespace) -> int:
     specs = plan_runs(task, args.runs, args.seed, goal_heights=heights, num_objects=args.objects,
                       object_set=args.object_set, case_files=case_files, case_objects=case_objects,
                       max_steps=args.max_steps)
+    return CheckpointPlan(path=path, ckpt=ckpt, run_dir=run_dir, config_path=config_path, config_toml=dumps_toml(cfg),
+                          state=state, task=task, heights=list(heights),
+                          cases_dir=str(case_files[0].parent) if case_files else None, specs=specs)
+
+
+def evaluate(args: argparse.Namespace, plan: CheckpointPlan, out_dir: Path) -> dict[str, Any]:
+    """Run one checkpoint's plan into out_dir; write and print its report; return it."""
+    from .metrics import completed
+    from .protocol import Progress, execute
+    from .report import build_report, markdown, write_outputs
+    from .runner import EvalSetup
+
     cores = os.cpu_count() or 1
-    workers = min(args.workers or cores, len(specs))
-    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    out_dir = Path(args.out) if args.out else run_dir / "eval" / f"{task}-{args.protocol}-{stamp}"
+    workers = min(args.workers or cores, len(plan.specs))
     out_dir.mkdir(parents=True, exist_ok=True)
     journal = out_dir / "runs.jsonl"
-    if journal.exists() and journal.stat().st_size:
-        raise RomannetError(f"{journal} already holds runs: choose another --out")
-    (out_dir / "config.toml").write_text(dumps_toml(cfg), encoding="utf-8")
-    setup = EvalSetup(config_toml=dumps_toml(cfg), checkpoint=str(ckpt), protocol=args.protocol,
+    (out_dir / "config.toml").write_text(plan.config_toml, encoding="utf-8")
+    setup = EvalSetup(config_toml=plan.config_toml, checkpoint=str(plan.ckpt), protocol=args.protocol,
                       threads=max(1, cores // workers))
-
-    progress = Progress(len(specs))
-    log.info("evaluating %s on %s (%s protocol): %d runs on %d worker(s), output in %s", ckpt, task,
-             args.protocol, len(specs), workers, out_dir)
+    progress = Progress(len(plan.specs))
+    log.info("evaluating %s on %s (%s protocol): %d runs on %d worker(s), output in %s", plan.ckpt, plan.task,
+             args.protocol, len(plan.specs), workers, out_dir)
     start = time.monotonic()
-    runs = execute(setup, specs, workers, journal, on_run=lambda r: progress.update(r, completed(r)))
-    header = {"checkpoint": str(ckpt), "updates": state.get("updates"), "task": task, "protocol": args.protocol,
-              "runs_per_case": args.runs, "base_seed": args.seed, "planned_runs": len(specs),
-              "interrupted": len(runs) < len(specs), "workers": workers, "machine": _machine(),
-              "date": dt.datetime.now().isoformat(timespec="seconds"), "wall_s": time.monotonic() - start,
-              "object_set": args.object_set if task == "clutter" else None,
-              "num_objects": args.objects if task == "clutter" else None,
-              "goal_heights": heights if task == "stacking" else None,
-              "cases_dir": str(case_files[0].parent) if case_files else None,
-              "overrides": list(args.overrides), "config": str(config_path)}
+    runs = execute(setup, plan.specs, workers, journal, on_run=lambda r: progress.update(r, completed(r)))
+    header = {"checkpoint": str(plan.ckpt), "updates": plan.state.get("updates"), "task": plan.task,
+              "protocol": args.protocol, "runs_per_case": args.runs, "base_seed": args.seed,
+              "planned_runs": len(plan.specs), "interrupted": len(runs) < len(plan.specs), "workers": workers,
+              "machine": _machine(), "date": dt.datetime.now().isoformat(timespec="seconds"),
+              "wall_s": time.monotonic() - start,
+              "object_set": args.object_set if plan.task == "clutter" else None,
+              "num_objects": args.objects if plan.task == "clutter" else None,
+              "goal_heights": plan.heights if plan.task == "stacking" else None,
+              "cases_dir": plan.cases_dir, "overrides": list(args.overrides), "config": str(plan.config_path)}
     report = build_report(runs, header)
     paths = write_outputs(report, out_dir)
     print(markdown(report))
     print(f"written: {', '.join(str(p) for p in paths.values())}")
-    return 130 if report["interrupted"] else 0
+    return report
+
+
+def _same_tests(plans: list[CheckpointPlan]) -> None:
+    """Checkpoints compared must meet the same scenes: same task, cases, seeds and step limits."""
+    first = plans[0]
+    for plan in plans[1:]:
+        if plan.specs != first.specs:
+            raise RomannetError(
+                f"{plan.path} would be tested on {plan.task} {sorted({s.case for s in plan.specs})} and "
+                f"{first.path} on {first.task} {sorted({s.case for s in first.specs})}: compared checkpoints need "
+                "the same tests (pass --task and its flags, e.g. --goal-height)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from .compare import compare, markdown, unique_names, write_comparison
+
+    paths = [Path(p) for p in args.checkpoints]
+    if len(paths) > 1 and not args.out:
+        raise RomannetError(f"{len(paths)} checkpoints: pass --out DIR (each checkpoint's report goes to "
+                            "DIR/<name>/, their comparison to DIR/comparison.md)")
+    plans = [plan_checkpoint(args, p) for p in paths]  # every input checked before the first run
+    _same_tests(plans)
+    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    names = unique_names([p.name for p in plans])
+    if len(plans) == 1:
+        out_dirs = [Path(args.out) if args.out else plans[0].run_dir / "eval" / f"{plans[0].task}-{args.protocol}-{stamp}"]
+    else:
+        out_dirs = [Path(args.out) / name for name in names]
+    for out_dir in out_dirs:
+        journal = out_dir / "runs.jsonl"
+        if journal.exists() and journal.stat().st_size:
+            raise RomannetError(f"{journal} already holds runs: choose another --out")
+    reports: dict[str, dict[str, Any]] = {}
+    for k, (plan, name, out_dir) in enumerate(zip(plans, names, out_dirs, strict=True)):
+        if len(plans) > 1:
+            log.info("checkpoint %d of %d: %s", k + 1, len(plans), name)
+        reports[name] = evaluate(args, plan, out_dir)
+        if reports[name]["interrupted"]:
+            break
+    if len(plans) > 1:
+        comparison = compare(reports)
+        comparison["interrupted"] = comparison["interrupted"] or len(reports) < len(plans)
+        written = write_comparison(comparison, Path(args.out))
+        print(markdown(comparison))
+        print(f"written: {', '.join(str(p) for p in written.values())}")
+    return 130 if any(r["interrupted"] for r in reports.values()) else 0
 
 
 def _as_dict(cfg: object) -> dict:

@@ -1,0 +1,122 @@
+"""Several checkpoints on the same test scenes: one row per case and checkpoint, and their mean and range.
+
+`romannet eval A B C --out DIR` evaluates each checkpoint with the same seeds (protocol.py: the same base
+seed gives the same scenes), writes each one's report to DIR/<name>/ and this comparison to
+DIR/comparison.{json,md}. Typical use: the seeds of one training recipe, or the variants of an ablation.
+
+The mean of a metric over checkpoints is taken over the checkpoints that have it: pick success and action
+efficiency are averages over completed runs, so a checkpoint that completed no run has neither (it is
+counted in `n` of completion only).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from statistics import mean
+from typing import Any
+
+METRICS = ("completion_rate", "pick_success_rate", "action_efficiency")
+
+
+def unique_names(names: Sequence[str]) -> list[str]:
+    """The names with repeats made unique by a suffix: ["a", "a", "b"] -> ["a", "a-2", "b"]."""
+    seen: dict[str, int] = {}
+    out = []
+    for name in names:
+        seen[name] = seen.get(name, 0) + 1
+        out.append(name if seen[name] == 1 else f"{name}-{seen[name]}")
+    return out
+
+
+def spread(values: Sequence[float | None]) -> dict[str, float | int | None]:
+    """Mean, min, max and count of the values that are not None (all None: mean/min/max None, n 0)."""
+    kept = [v for v in values if v is not None]
+    if not kept:
+        return {"mean": None, "min": None, "max": None, "n": 0}
+    return {"mean": mean(kept), "min": min(kept), "max": max(kept), "n": len(kept)}
+
+
+def compare(reports: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """The comparison of several eval reports (name -> report.json content) that share their test plan.
+
+    Per case (in the first report's order): each checkpoint's completion, pick success and efficiency, and
+    their spread over checkpoints; the same for the overall row. Raises ValueError when the reports were
+    not made on the same cases, protocol and seeds (a comparison of different tests would mislead).
+    """
+    if not reports:
+        raise ValueError("no reports to compare")
+    names = list(reports)
+    first = reports[names[0]]
+    for name in names[1:]:
+        r = reports[name]
+        for key in ("task", "protocol", "base_seed", "runs_per_case"):
+            if r.get(key) != first.get(key):
+                raise ValueError(f"{name}: {key} {r.get(key)!r} differs from {names[0]}'s {first.get(key)!r}")
+        if list(r["cases"]) and list(first["cases"]) and set(r["cases"]) != set(first["cases"]):
+            raise ValueError(f"{name}: cases {list(r['cases'])} differ from {names[0]}'s {list(first['cases'])}")
+    cases = list(dict.fromkeys(c for r in reports.values() for c in r["cases"]))
+    rows: dict[str, Any] = {}
+    for case in [*cases, "all"] if len(cases) > 1 else cases:
+        per = {n: (reports[n]["overall"] if case == "all" else reports[n]["cases"].get(case)) for n in names}
+        rows[case] = {
+            "checkpoints": {n: None if s is None else {m: s[m] for m in (*METRICS, "runs", "completed")}
+                            for n, s in per.items()},
+            **{m: spread([None if s is None else s[m] for s in per.values()]) for m in METRICS},
+        }
+    return {"task": first["task"], "protocol": first["protocol"], "base_seed": first["base_seed"],
+            "runs_per_case": first["runs_per_case"],
+            "interrupted": any(r.get("interrupted") for r in reports.values()),
+            "checkpoints": {n: {"checkpoint": reports[n]["checkpoint"], "updates": reports[n].get("updates"),
+                                "wall_s": reports[n].get("wall_s"), "interrupted": bool(reports[n].get("interrupted"))}
+                            for n in names},
+            "cases": rows}
+
+
+def _pct(value: float | None) -> str:
+    return "–" if value is None else f"{100 * value:.1f} %"
+
+
+def _spread_cell(s: Mapping[str, Any]) -> str:
+    if s["mean"] is None:
+        return "–"
+    return f"{_pct(s['mean'])} ({100 * s['min']:.1f}–{100 * s['max']:.1f}, n {s['n']})"
+
+
+def markdown(comparison: Mapping[str, Any]) -> str:
+    """The comparison as Markdown: one row per case and checkpoint, then the mean (min–max) row."""
+    lines = [f"### {comparison['task']}: {len(comparison['checkpoints'])} checkpoints, protocol "
+             f"`{comparison['protocol']}`", "",
+             f"The same test scenes for every checkpoint: {comparison['runs_per_case']} runs per case, seeds "
+             f"from {comparison['base_seed']}."]
+    if comparison["interrupted"]:
+        lines.append("**Interrupted**: at least one checkpoint's evaluation did not finish (see its report).")
+    lines += ["", "| case | checkpoint | updates | runs | completion | pick success | action efficiency |",
+              "|---|---|---:|---:|---:|---:|---:|"]
+    for case, row in comparison["cases"].items():
+        for name, s in row["checkpoints"].items():
+            updates = comparison["checkpoints"][name]["updates"]
+            if s is None:
+                lines.append(f"| {case} | {name} | {updates} | 0 | – | – | – |")
+                continue
+            lines.append(f"| {case} | {name} | {updates} | {s['runs']} | {_pct(s['completion_rate'])} | "
+                         f"{_pct(s['pick_success_rate'])} | {_pct(s['action_efficiency'])} |")
+        lines.append(f"| {case} | **mean (min–max)** | | | {_spread_cell(row['completion_rate'])} | "
+                     f"{_spread_cell(row['pick_success_rate'])} | {_spread_cell(row['action_efficiency'])} |")
+    lines += ["", "Pick success and action efficiency are averaged over a checkpoint's completed runs (the "
+                  "paper's metrics); a checkpoint that completed no run has neither and is left out of their "
+                  "mean (n counts the checkpoints that have the metric)."]
+    return "\n".join(lines) + "\n"
+
+
+def write_comparison(comparison: Mapping[str, Any], out_dir: Path) -> dict[str, Path]:
+    """comparison.json and comparison.md in out_dir (each written to a temporary file, then renamed)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {"json": out_dir / "comparison.json", "markdown": out_dir / "comparison.md"}
+    for key, text in (("json", json.dumps(comparison, indent=1) + "\n"), ("markdown", markdown(comparison))):
+        tmp = paths[key].with_name(paths[key].name + ".tmp")
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, paths[key])
+    return paths
