@@ -17,9 +17,14 @@ def fsync_directory(directory: str | Path) -> None:
         os.close(fd)
 
 
-def write_json_atomic(path: Path, data: Any, indent: int = 1) -> None:
-    """Replace `path` with `data` as JSON all at once (tmp file + rename): a reader or a crash sees the old
-    file or the new one, never half of one. No fsync: for files rewritten often (statuses, counts)."""
+def write_text_atomic(path: Path, text: str) -> None:
+    """Replace `path` with `text` all at once (tmp file + rename): a reader or a crash sees the old file or
+    the new one, never half of one. No fsync: for files rewritten often (statuses, counts, reports)."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=indent) + "\n", encoding="utf-8")
+    tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, path)
+
+
+def write_json_atomic(path: Path, data: Any, indent: int = 1) -> None:
+    """`write_text_atomic` of `data` as JSON."""
+    write_text_atomic(path, json.dumps(data, indent=indent) + "\n")

@@ -11,12 +11,12 @@ counted in `n` of completion only).
 
 from __future__ import annotations
 
-import json
-import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from statistics import mean
 from typing import Any
+
+from romannet.common.fsutil import write_json_atomic, write_text_atomic
 
 METRICS = ("completion_rate", "pick_success_rate", "action_efficiency")
 
@@ -112,11 +112,9 @@ def markdown(comparison: Mapping[str, Any]) -> str:
 
 
 def write_comparison(comparison: Mapping[str, Any], out_dir: Path) -> dict[str, Path]:
-    """comparison.json and comparison.md in out_dir (each written to a temporary file, then renamed)."""
+    """comparison.json and comparison.md in out_dir (each replaced all at once)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": out_dir / "comparison.json", "markdown": out_dir / "comparison.md"}
-    for key, text in (("json", json.dumps(comparison, indent=1) + "\n"), ("markdown", markdown(comparison))):
-        tmp = paths[key].with_name(paths[key].name + ".tmp")
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, paths[key])
+    write_json_atomic(paths["json"], comparison)
+    write_text_atomic(paths["markdown"], markdown(comparison))
     return paths

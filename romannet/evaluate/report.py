@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import json
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+from romannet.common.fsutil import write_json_atomic, write_text_atomic
 
 from .metrics import RunLog, Summary, by_case, cases_solved_in_all_runs, summarize
 
@@ -95,13 +95,11 @@ def plot(report: dict[str, Any], path: Path) -> Path | None:
 
 
 def write_outputs(report: dict[str, Any], out_dir: Path) -> dict[str, Path]:
-    """report.json and report.md (each written to a temporary file, then renamed) and report.png."""
+    """report.json and report.md (each replaced all at once) and report.png."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": out_dir / "report.json", "markdown": out_dir / "report.md"}
-    for key, text in (("json", json.dumps(report, indent=1) + "\n"), ("markdown", markdown(report))):
-        tmp = paths[key].with_name(paths[key].name + ".tmp")
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, paths[key])
+    write_json_atomic(paths["json"], report)
+    write_text_atomic(paths["markdown"], markdown(report))
     png = plot(report, out_dir / "report.png")
     if png is not None:
         paths["plot"] = png
