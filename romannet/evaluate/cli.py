@@ -55,8 +55,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, default=0, metavar="N",
                    help="actions per run before it ends as step_limit (0: 5x the ideal count, at least 30)")
     p.add_argument("--workers", type=int, default=0, metavar="N", help="processes (0: one per CPU core)")
-    p.add_argument("--out", metavar="DIR", help="output directory (default: <run>/eval/<task>-<protocol>-<time>); with several checkpoints "
-                        "DIR/<name>/ for each and DIR/comparison.md")
+    p.add_argument("--out", metavar="DIR",
+                   help="output directory (default: <run>/eval/<task>-<protocol>-<time>); with several "
+                        "checkpoints DIR/<name>/ for each and DIR/comparison.md")
     p.add_argument("--config", metavar="FILE.toml", help="use this config instead of the run's config.toml")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="override a config field (repeatable)")
@@ -103,7 +104,9 @@ class CheckpointPlan:
     @property
     def name(self) -> str:
         """The run directory's name, plus the checkpoint's when a ckpt-* directory was given."""
-        return f"{self.run_dir.name}-{self.ckpt.name}" if self.path.resolve() == self.ckpt.resolve() else self.run_dir.name
+        if self.path.resolve() == self.ckpt.resolve():
+            return f"{self.run_dir.name}-{self.ckpt.name}"
+        return self.run_dir.name
 
 
 def plan_checkpoint(args: argparse.Namespace, path: Path) -> CheckpointPlan:
@@ -140,8 +143,8 @@ def plan_checkpoint(args: argparse.Namespace, path: Path) -> CheckpointPlan:
     specs = plan_runs(task, args.runs, args.seed, goal_heights=heights, num_objects=args.objects,
                       object_set=args.object_set, case_files=case_files, case_objects=case_objects,
                       max_steps=args.max_steps)
-    return CheckpointPlan(path=path, ckpt=ckpt, run_dir=run_dir, config_path=config_path, config_toml=dumps_toml(cfg),
-                          state=state, task=task, heights=list(heights),
+    return CheckpointPlan(path=path, ckpt=ckpt, run_dir=run_dir, config_path=config_path,
+                          config_toml=dumps_toml(cfg), state=state, task=task, heights=list(heights),
                           cases_dir=str(case_files[0].parent) if case_files else None, specs=specs)
 
 
@@ -203,7 +206,8 @@ def run(args: argparse.Namespace) -> int:
     stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     names = unique_names([p.name for p in plans])
     if len(plans) == 1:
-        out_dirs = [Path(args.out) if args.out else plans[0].run_dir / "eval" / f"{plans[0].task}-{args.protocol}-{stamp}"]
+        default = plans[0].run_dir / "eval" / f"{plans[0].task}-{args.protocol}-{stamp}"
+        out_dirs = [Path(args.out) if args.out else default]
     else:
         out_dirs = [Path(args.out) / name for name in names]
     for out_dir in out_dirs:

@@ -69,10 +69,13 @@ def compare(reports: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     return {"task": first["task"], "protocol": first["protocol"], "base_seed": first["base_seed"],
             "runs_per_case": first["runs_per_case"],
             "interrupted": any(r.get("interrupted") for r in reports.values()),
-            "checkpoints": {n: {"checkpoint": reports[n]["checkpoint"], "updates": reports[n].get("updates"),
-                                "wall_s": reports[n].get("wall_s"), "interrupted": bool(reports[n].get("interrupted"))}
-                            for n in names},
+            "checkpoints": {n: _checkpoint_header(reports[n]) for n in names},
             "cases": rows}
+
+
+def _checkpoint_header(report: Mapping[str, Any]) -> dict[str, Any]:
+    return {"checkpoint": report["checkpoint"], "updates": report.get("updates"), "wall_s": report.get("wall_s"),
+            "interrupted": bool(report.get("interrupted"))}
 
 
 def _pct(value: float | None) -> str:
