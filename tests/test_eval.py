@@ -138,6 +138,7 @@ def test_eval_compares_checkpoints_on_the_same_scenes(tmp_path: Path) -> None:
     assert row["completion_rate"]["min"] == min(rates) and row["completion_rate"]["n"] == 2
     md = (out / "comparison.md").read_text()
     assert "| h2 | stack-s1 |" in md and "**mean (min–max)**" in md and "| h2 | stack-s1 |" in proc.stdout
+    assert (out / "comparison.png").stat().st_size > 1000
 
 
 def test_eval_of_several_checkpoints_checks_every_input_before_running(tmp_path: Path) -> None:

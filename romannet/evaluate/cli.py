@@ -12,7 +12,7 @@ to test on; --set changes any other field (e.g. --set sim.robot=gripper). Output
 Several checkpoints (the seeds of one recipe, the variants of an ablation) are tested one after another on
 the same scenes; --out DIR is then required: each checkpoint's outputs go to DIR/<name>/ (name: its run
 directory's name, or run-ckpt for a checkpoint directory) and their comparison, with the mean and range of
-every metric over the checkpoints, to DIR/comparison.md and comparison.json:
+every metric over the checkpoints, to DIR/comparison.md, .json and .png:
 
     romannet eval runs/stack-s1 runs/stack-s2 runs/stack-s3 --goal-height 4 --protocol frozen --out cmp/
 """

@@ -2,7 +2,7 @@
 
 `romannet eval A B C --out DIR` evaluates each checkpoint with the same seeds (protocol.py: the same base
 seed gives the same scenes), writes each one's report to DIR/<name>/ and this comparison to
-DIR/comparison.{json,md}. Typical use: the seeds of one training recipe, or the variants of an ablation.
+DIR/comparison.{json,md,png}. Typical use: the seeds of one training recipe, or the variants of an ablation.
 
 The mean of a metric over checkpoints is taken over the checkpoints that have it: pick success and action
 efficiency are averages over completed runs, so a checkpoint that completed no run has neither (it is
@@ -114,10 +114,46 @@ def markdown(comparison: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def plot(comparison: Mapping[str, Any], path: Path) -> Path:
+    """Completion per case: one bar per checkpoint, the mean over checkpoints as a line across each case."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    cases = list(comparison["cases"])
+    names = list(comparison["checkpoints"])
+    width = 0.8 / max(1, len(names))
+    x = np.arange(len(cases))
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.6 * len(cases) * len(names) + 3), 4.0))
+    for k, name in enumerate(names):
+        values = [100 * ((comparison["cases"][c]["checkpoints"][name] or {}).get("completion_rate") or 0.0)
+                  for c in cases]
+        ax.bar(x - 0.4 + (k + 0.5) * width, values, width, label=name)
+    for i, case in enumerate(cases):
+        m = comparison["cases"][case]["completion_rate"]["mean"]
+        if m is not None:
+            ax.hlines(100 * m, i - 0.45, i + 0.45, colors="black", linewidth=2,
+                      label="mean over checkpoints" if i == 0 else None)
+    ax.set_xticks(x, cases)
+    ax.set_ylim(0, 105)
+    ax.set_ylabel("completion (%)")
+    ax.set_title(f"{comparison['task']} ({comparison['protocol']} protocol, {comparison['runs_per_case']} runs "
+                 "per case and checkpoint)")
+    ax.legend(loc="upper right", fontsize=7)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def write_comparison(comparison: Mapping[str, Any], out_dir: Path) -> dict[str, Path]:
-    """comparison.json and comparison.md in out_dir (each replaced all at once)."""
+    """comparison.json and comparison.md in out_dir (each replaced all at once), and comparison.png."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": out_dir / "comparison.json", "markdown": out_dir / "comparison.md"}
     write_json_atomic(paths["json"], comparison)
     write_text_atomic(paths["markdown"], markdown(comparison))
+    paths["plot"] = plot(comparison, out_dir / "comparison.png")
     return paths
