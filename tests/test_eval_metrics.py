@@ -285,6 +285,7 @@ def test_comparison_refuses_reports_of_different_tests():
     with pytest.raises(ValueError, match="no reports"):
         compare({})
     assert unique_names(["a", "a", "b", "a"]) == ["a", "a-2", "b", "a-3"]
+    assert unique_names(["a", "a-2", "a"]) == ["a", "a-2", "a-3"]  # a suffix never repeats a given name
 
 
 def _cube_heightmap(centre_rc: tuple[float, float], yaw_deg: float, side_px: int = 25) -> np.ndarray:

@@ -23,11 +23,15 @@ METRICS = ("completion_rate", "pick_success_rate", "action_efficiency")
 
 def unique_names(names: Sequence[str]) -> list[str]:
     """The names with repeats made unique by a suffix: ["a", "a", "b"] -> ["a", "a-2", "b"]."""
-    seen: dict[str, int] = {}
+    taken: set[str] = set()
     out = []
     for name in names:
-        seen[name] = seen.get(name, 0) + 1
-        out.append(name if seen[name] == 1 else f"{name}-{seen[name]}")
+        unique, k = name, 1
+        while unique in taken:
+            k += 1
+            unique = f"{name}-{k}"
+        taken.add(unique)
+        out.append(unique)
     return out
 
 
