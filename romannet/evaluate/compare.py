@@ -120,37 +120,16 @@ def markdown(comparison: Mapping[str, Any]) -> str:
 
 def plot(comparison: Mapping[str, Any], path: Path) -> Path:
     """Completion per case: one bar per checkpoint, the mean over checkpoints as a line across each case."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
+    from .report import bar_chart
 
     cases = list(comparison["cases"])
-    names = list(comparison["checkpoints"])
-    width = 0.8 / max(1, len(names))
-    x = np.arange(len(cases))
-    fig, ax = plt.subplots(figsize=(max(6.0, 0.6 * len(cases) * len(names) + 3), 4.0))
-    for k, name in enumerate(names):
-        values = [100 * ((comparison["cases"][c]["checkpoints"][name] or {}).get("completion_rate") or 0.0)
-                  for c in cases]
-        ax.bar(x - 0.4 + (k + 0.5) * width, values, width, label=name)
-    for i, case in enumerate(cases):
-        m = comparison["cases"][case]["completion_rate"]["mean"]
-        if m is not None:
-            ax.hlines(100 * m, i - 0.45, i + 0.45, colors="black", linewidth=2,
-                      label="mean over checkpoints" if i == 0 else None)
-    ax.set_xticks(x, cases)
-    ax.set_ylim(0, 105)
-    ax.set_ylabel("completion (%)")
-    ax.set_title(f"{comparison['task']} ({comparison['protocol']} protocol, {comparison['runs_per_case']} runs "
-                 "per case and checkpoint)")
-    ax.legend(loc="upper right", fontsize=7)
-    ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    series = {name: [100 * ((comparison["cases"][c]["checkpoints"][name] or {}).get("completion_rate") or 0.0)
+                     for c in cases] for name in comparison["checkpoints"]}
+    means = [comparison["cases"][c]["completion_rate"]["mean"] for c in cases]
+    return bar_chart(path, cases, series, ylabel="completion (%)", legend_loc="upper right",
+                     title=f"{comparison['task']} ({comparison['protocol']} protocol, "
+                           f"{comparison['runs_per_case']} runs per case and checkpoint)",
+                     marks=[None if m is None else 100 * m for m in means], mark_label="mean over checkpoints")
 
 
 def write_comparison(comparison: Mapping[str, Any], out_dir: Path) -> dict[str, Path]:

@@ -63,35 +63,49 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(report: dict[str, Any], path: Path) -> Path | None:
-    """Bars per case: completion, pick success, action efficiency (percent). None if nothing to plot."""
-    if not report["cases"]:
-        return None
+def bar_chart(path: Path, groups: Sequence[str], series: dict[str, Sequence[float]], *, ylabel: str, title: str,
+              legend_loc: str = "lower right", marks: Sequence[float | None] = (), mark_label: str = "") -> Path:
+    """Grouped bars (percent, 0-100): one group per x label, one bar per series; `marks` (one per group, or
+    None) are drawn as a black line across their group."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
-    names = list(report["cases"])
-    metrics = [("completion_rate", "completion"), ("pick_success_rate", "pick success"),
-               ("action_efficiency", "action efficiency")]
-    x = np.arange(len(names))
-    width = 0.27
-    fig, ax = plt.subplots(figsize=(max(6.0, 0.9 * len(names) + 3), 4.0))
-    for k, (key, label) in enumerate(metrics):
-        values = [100 * (report["cases"][n][key] or 0.0) for n in names]
-        ax.bar(x + (k - 1) * width, values, width, label=label)
-    ax.set_xticks(x, names, rotation=30 if len(names) > 4 else 0, ha="right" if len(names) > 4 else "center")
+    x = np.arange(len(groups))
+    width = 0.8 / max(1, len(series))
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.3 * len(groups) * len(series) + 3), 4.0))
+    for k, (label, values) in enumerate(series.items()):
+        ax.bar(x - 0.4 + (k + 0.5) * width, values, width, label=label)
+    first = True
+    for i, mark in enumerate(marks):
+        if mark is not None:
+            ax.hlines(mark, i - 0.45, i + 0.45, colors="black", linewidth=2, label=mark_label if first else None)
+            first = False
+    many = len(groups) > 4
+    ax.set_xticks(x, groups, rotation=30 if many else 0, ha="right" if many else "center")
     ax.set_ylim(0, 105)
-    ax.set_ylabel("%")
-    ax.set_title(f"{report['task']} ({report['protocol']} protocol, {report['runs_per_case']} runs per case)")
-    ax.legend(loc="lower right", fontsize=8)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(loc=legend_loc, fontsize=8 if len(series) <= 3 else 7)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot(report: dict[str, Any], path: Path) -> Path | None:
+    """Bars per case: completion, pick success, action efficiency (percent). None if nothing to plot."""
+    if not report["cases"]:
+        return None
+    names = list(report["cases"])
+    metrics = [("completion_rate", "completion"), ("pick_success_rate", "pick success"),
+               ("action_efficiency", "action efficiency")]
+    series = {label: [100 * (report["cases"][n][key] or 0.0) for n in names] for key, label in metrics}
+    return bar_chart(path, names, series, ylabel="%",
+                     title=f"{report['task']} ({report['protocol']} protocol, {report['runs_per_case']} runs per case)")
 
 
 def write_outputs(report: dict[str, Any], out_dir: Path) -> dict[str, Path]:
