@@ -123,6 +123,8 @@ def test_ablation_recipes_differ_from_the_full_method_only_in_what_they_ablate()
         ("stacking", "stacking-tpg"): exploration,
         ("stacking", "stacking-tp"): {"reward.use_gaussian": False},
         ("stacking", "stacking-paper-norm"): {"reward.kernel_normalization": "paper"},
+        ("stacking", "stacking-pixel-lt"): {"reward.zero_reward_support": "pixel",
+                                            "learner.executed_pixel_weight": 1.0},
     }
     for (full_name, name), changed in ablations.items():
         full, ablation = _flat_config(root / f"{full_name}.toml"), _flat_config(root / f"{name}.toml")
