@@ -18,6 +18,8 @@ from typing import Any
 
 from romannet.common.fsutil import write_json_atomic, write_text_atomic
 
+from .report import bar_chart
+
 METRICS = ("completion_rate", "pick_success_rate", "action_efficiency")
 
 
@@ -120,8 +122,6 @@ def markdown(comparison: Mapping[str, Any]) -> str:
 
 def plot(comparison: Mapping[str, Any], path: Path) -> Path:
     """Completion per case: one bar per checkpoint, the mean over checkpoints as a line across each case."""
-    from .report import bar_chart
-
     cases = list(comparison["cases"])
     series = {name: [100 * ((comparison["cases"][c]["checkpoints"][name] or {}).get("completion_rate") or 0.0)
                      for c in cases] for name in comparison["checkpoints"]}
