@@ -446,6 +446,60 @@ def test_stack_actions_reads_a_stacking_run_from_its_recorded_transitions(tmp_pa
         main([str(tmp_path / "run"), "--radius-m", "-1"])
 
 
+def test_training_counts_blocks_and_last_window_on_hand_made_outcomes():
+    from romannet.bench.training_counts import last_rate, per_block
+
+    outcomes = [True, False, True, True, False, False, True]
+    assert per_block(outcomes, 3) == [2, 1, 1]  # the last, partial block counts what it has
+    assert per_block(outcomes, 50) == [4]
+    assert last_rate(outcomes, 4) == 0.5 and last_rate(outcomes, 500) == 4 / 7
+    assert per_block([], 50) == [] and last_rate([], 500) is None
+    with pytest.raises(ValueError, match="block 0"):
+        per_block(outcomes, 0)
+    with pytest.raises(ValueError, match="last 0"):
+        last_rate(outcomes, 0)
+
+
+def test_training_counts_order_actors_by_time_and_count_episodes_and_stacks():
+    from romannet.bench.training_counts import Recorded, summarize
+
+    a = [Recorded(10, "a0/ep0", "pick", False, True, "", 1), Recorded(30, "a0/ep0", "place", False, True, "done", 4),
+         Recorded(50, "a0/ep1", "pick", True, False, "", 1)]
+    b = [Recorded(20, "a1/ep0", "pick", False, False, "", 2), Recorded(40, "a1/ep0", "pick", False, True,
+                                                                       "consecutive_failures", 3)]
+    out = summarize(a + b, block=2, last=3)
+    assert out["successful actions per 2"] == [1, 2, 0]  # in end-time order: T F | T T | F
+    assert out["action success, last 3"] == 2 / 3
+    assert out["pick"] == {"attempts": 4, "succeeded": 2, "rate": 0.5}
+    assert out["place"] == {"attempts": 1, "succeeded": 1, "rate": 1.0}
+    assert (out["explored actions"], out["episodes"], out["completed"]) == (1, 3, 1)
+    assert out["episode ends"] == {"consecutive_failures": 1, "done": 1, "not ended": 1}
+    assert out["episodes by highest stack"] == {"1": 1, "3": 1, "4": 1}
+
+
+def test_training_counts_read_a_stacking_run_from_its_recorded_transitions(tmp_path, capsys):
+    import json
+
+    from _episodes import STACK_SCRIPT, record_stacking_episode
+
+    from romannet.bench.training_counts import main
+
+    episodes = tmp_path / "run" / "episodes" / "a0"
+    episodes.mkdir(parents=True)
+    record_stacking_episode(episodes / "ep000000.mcap")
+    assert main([str(tmp_path / "run"), "--json", "--block", "4"]) == 0
+    out = json.loads(capsys.readouterr().out)["all"]
+    assert out["actions"] == len(STACK_SCRIPT) == 6
+    assert out["successful actions per 4"] == [4, 0]  # picked, placed, took off, placed; two misses
+    assert (out["pick"]["attempts"], out["pick"]["succeeded"], out["place"]["succeeded"]) == (4, 2, 2)
+    assert out["episodes by highest stack"] == {"2": 1}
+    assert out["episode ends"] == {"step_limit": 1} and out["completed"] == 0
+    (tmp_path / "junk.mcap").write_bytes(b"not an episode")
+    assert main([str(tmp_path / "junk.mcap")]) == 2
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "run"), "--block", "0"])
+
+
 def test_lone_cube_centres_and_spread():
     from romannet.bench.angle_probe import lone_cube_centres, spread
 
