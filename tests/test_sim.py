@@ -106,6 +106,21 @@ def test_a_cube_in_the_air_or_in_the_hand_is_not_a_stack(env):
     assert env.stack_height_gt() == 1 and not result.done
 
 
+def test_a_stack_at_the_workspaces_edge_counts_where_the_heightmap_sees_it(env):
+    """The reward measures stacks on the heightmap, which sees any cube partly over the workspace; the ground
+    truth that ends an episode "done" must count the same cubes. It counted centres over the square only, so
+    a stack built at a corner (centres up to 2 cm outside) was rewarded at every place and never done."""
+    corner_x, corner_y = WS.x_max_m + 0.01, WS.y_max_m + 0.01  # centres 1 cm past both edges
+    _scene_with_cubes(env, [(corner_x, corner_y, CUBE_SIZE_M * (k + 0.5) + 0.001 * k, 0.0) for k in range(3)])
+    assert env.stack_height_hm(env.obs.depth_hm) == 3
+    assert env.stack_height_gt() == 3
+    # wholly past the edge (centres 3 cm out, a 5 cm cube's near side 5 mm out): neither sees it
+    far_x, far_y = WS.x_max_m + 0.03, WS.y_max_m + 0.03
+    _scene_with_cubes(env, [(far_x, far_y, CUBE_SIZE_M * (k + 0.5) + 0.001 * k, 0.0) for k in range(2)])
+    assert env.stack_height_hm(env.obs.depth_hm) == 0
+    assert env.stack_height_gt() == 0
+
+
 def test_place_on_a_cube_raises_the_stack_to_two(env):
     _scene_with_cubes(env, [(0.45, -0.1, 0.025, 0.3), (0.6, 0.1, 0.025, -0.2)])
     pick = oracle_action(env)

@@ -169,11 +169,12 @@ class Scene:
         """Lowest point of a body (world z, m)."""
         return float(p.getAABB(body_id, -1, physicsClientId=self.client)[0][2])
 
-    def in_workspace(self, body_id: int) -> bool:
-        """Is the body's centre over the workspace square (and on or above the table)?"""
+    def in_workspace(self, body_id: int, margin_m: float = 0.0) -> bool:
+        """Is the body's centre over the workspace square grown by margin_m on every side (and on or above
+        the table)?"""
         x, y, z = self.pose(body_id)[0]
-        ws = self.ws
-        return ws.x_min_m <= x <= ws.x_max_m and ws.y_min_m <= y <= ws.y_max_m and z > FELL_OFF_Z_M
+        ws, m = self.ws, margin_m
+        return ws.x_min_m - m <= x <= ws.x_max_m + m and ws.y_min_m - m <= y <= ws.y_max_m + m and z > FELL_OFF_Z_M
 
     def step(self, n: int) -> None:
         """Advance the physics n time steps (settling, not robot motion)."""

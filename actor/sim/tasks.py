@@ -173,13 +173,15 @@ def stack_height_from_poses(scene: Scene, cube_size_m: float, exclude: int | Non
     horizontally). Anything else, a cube in the hand, one lifted with it or one resting on it, is not part of
     a stack: counting the highest top instead read a cube carried at 0.5 m as a stack of 10 and ended two
     training episodes as "done" (docs/results.md). exclude: a body to ignore (the cube the env knows is held).
-    Objects outside the workspace do not count.
+    A cube counts while any of it is over the workspace (its centre within half a cube of the square), where
+    the heightmap sees it: the reward measures stacks there (common.stack), and counting centres only left
+    stacks built at the square's edge rewarded by every place but never "done" (docs/results.md, 2026-12-03).
     """
     half, z0 = 0.5 * cube_size_m, scene.ws.z_min_m
     # (bottom, top, xy) of each body, read once; sorted from the lowest up, so a supporting cube has its
     # level before what it carries is looked at.
     bodies = sorted(((scene.bottom_z(b) - z0, scene.top_z(b) - z0, scene.pose(b)[0][:2]) for b in scene.objects
-                     if b != exclude and scene.in_workspace(b)), key=lambda body: body[0])
+                     if b != exclude and scene.in_workspace(b, half)), key=lambda body: body[0])
     counted: list[tuple[float, np.ndarray, int]] = []  # (top, xy, level) of the cubes in a stack
     for bottom, top, xy in bodies:
         if bottom < half:
