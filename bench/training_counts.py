@@ -6,8 +6,8 @@ and, for stacking, the highest stack each episode reached.
 
 Reads every recorded `/transition` of the run's episodes (what each actor sent: action, success, heightmaps,
 how the episode ended), all actors together in order of their end time. The highest stack of an episode is
-the tallest common.stack.stack_height (as the simulator's reward measures it) of its heightmaps, counted for
-every episode, with the one the budget cut short. Exit status 2 when a file is not a readable episode.
+the tallest common.stack.stack_height (as the simulator's reward measures it) of the heightmaps after its
+actions, counted for every episode, with the one the budget cut short. Exit status 2 when a file is not a readable episode.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ def episode_records(path: Path) -> list[Recorded]:
         cube_m = recorded_number(path, config_toml, "task", "cube_size_m")
     out = []
     for t in transitions:
-        stack = 0 if cube_m is None else max(stack_height(t.depth_before, cube_m), stack_height(t.depth_after, cube_m))
+        stack = 0 if cube_m is None else stack_height(t.depth_after, cube_m)
         out.append(Recorded(int(t.end_ns), f"{path.parent.name}/{t.episode_id}", t.action.primitive,
                             bool(t.action.explored), bool(t.success), t.done_reason if t.done else "", stack))
     return out
