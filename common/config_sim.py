@@ -41,6 +41,9 @@ class SimConfig:
     # 0.96 m/s and a pick landing on an object's edge threw it (1-2.4 m/s, measured); a real parallel
     # gripper moves its fingers at centimetres per second.
     finger_speed_mps: float = 0.1
+    # Travel of each finger from closed to fully open (m): the Panda's 0.04 opens 8 cm; 0.055 opens 11 cm
+    # like the paper's RG2 gripper (0-110 mm stroke).
+    finger_travel_m: float = 0.04
     # --- physics
     time_step_s: float = 1.0 / 240.0
     substeps: int = 0  # PyBullet numSubSteps (0 = none); raise for stiffer contacts at a cost in speed
@@ -89,6 +92,8 @@ class SimConfig:
                 "must be 1..200 N")
         require(0.01 <= self.finger_speed_mps <= 1.0, "sim.finger_speed_mps", self.finger_speed_mps,
                 "must be 0.01..1 m/s per finger")
+        require(0.02 <= self.finger_travel_m <= 0.06, "sim.finger_travel_m", self.finger_travel_m,
+                "must be 0.02..0.06 m per finger (the Panda: 0.04, an 8 cm opening; an RG2-like 11 cm: 0.055)")
         require(1e-4 <= self.time_step_s <= 0.02, "sim.time_step_s", self.time_step_s,
                 "must be 1e-4..0.02 s (PyBullet's default is 1/240)")
         require(0 <= self.substeps <= 20, "sim.substeps", self.substeps, "must be 0..20")

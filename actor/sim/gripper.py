@@ -21,7 +21,7 @@ import pybullet_data
 
 from romannet.common.config_sim import SimConfig
 
-from .robot import FINGER_OPEN_M, REACHED_TOL_M, YAW_SPEED_RADPS, Hand, hand_yaw_from
+from .robot import REACHED_TOL_M, YAW_SPEED_RADPS, Hand, hand_yaw_from
 from .scene import StepBudget
 
 log = logging.getLogger(__name__)
@@ -82,7 +82,7 @@ class FloatingGripper(Hand):
         p.resetBasePositionAndOrientation(self.body_id, self._base_target(home), _top_down(0.0),
                                           physicsClientId=self.client)
         for j in self.finger_joints:
-            p.resetJointState(self.body_id, j, FINGER_OPEN_M, physicsClientId=self.client)
+            p.resetJointState(self.body_id, j, self.sim.finger_travel_m, physicsClientId=self.client)
         self._command(home, 0.0)
         self.set_fingers(closed=False)
 

@@ -17,7 +17,7 @@ from romannet.common.action import Action, patch_max, position_to_pixel
 from .env import SimEnv
 from .scene import wrap_half_pi
 
-MAX_GRASP_WIDTH_M = 0.07  # the Panda opens 8 cm; leave a margin
+GRASP_WIDTH_MARGIN_M = 0.01  # an object this much narrower than the full opening still fits between the fingers
 CROWDED_GAP_M = 0.025  # a neighbour closer than this (surface to surface, roughly) blocks the fingers
 # The Panda's fingers squeeze with their lowest centimetre: there must be material at these heights above
 # the fingertips (an arch grasped over its hole has material only higher up, and slips: measured).
@@ -94,10 +94,11 @@ def _grasp_angle(env: SimEnv, body: int) -> float | None:
     """Closing angle for a top-down grasp of body: across its narrow side, else across its wide side when
     that fits the gripper and the narrow one would close on nothing; None if neither does."""
     narrow, angle, wide, wide_angle = _footprint(env, body)
+    max_width = 2 * env.sim.finger_travel_m - GRASP_WIDTH_MARGIN_M
     for width, a in ((narrow, angle), (wide, wide_angle)):
-        if width <= MAX_GRASP_WIDTH_M and _solid_between_fingers(env, body, a):
+        if width <= max_width and _solid_between_fingers(env, body, a):
             return wrap_half_pi(a)
-    return wrap_half_pi(angle) if narrow <= MAX_GRASP_WIDTH_M else None
+    return wrap_half_pi(angle) if narrow <= max_width else None
 
 
 def _push_actions(env: SimEnv, body: int, bodies: list[int]) -> list[Action]:

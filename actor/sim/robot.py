@@ -38,7 +38,7 @@ GRASP_TARGET_LINK = 11
 # project outside the workspace, so the camera sees the scene unoccluded (VPG also moves home to capture).
 HOME_Q = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
 ARM_FORCE_N = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)  # the URDF's joint effort limits
-FINGER_OPEN_M = 0.04  # per finger: an 8 cm gap fully open
+FINGER_OPEN_M = 0.04  # per finger: the Panda URDF's travel, an 8 cm gap fully open (sim.finger_travel_m's default)
 JOINT_SPEED_RADPS = 2.0  # joint-space moves (going home); the Panda's limits are 2.175-2.61 rad/s
 YAW_SPEED_RADPS = 3.0  # wrist rotation during Cartesian moves
 REACHED_TOL_M = 0.003  # a motion has arrived when the fingertips are this close to the target
@@ -92,6 +92,9 @@ class Hand:
             # High friction pads: a 5 cm cube must not slip out during the lift.
             p.changeDynamics(self.body_id, link, lateralFriction=self.sim.finger_friction, spinningFriction=0.01,
                              frictionAnchor=True, physicsClientId=self.client)
+            if self.sim.finger_travel_m != FINGER_OPEN_M:  # the URDF's limit stops the finger at 0.04 m
+                p.changeDynamics(self.body_id, link, jointLowerLimit=0.0, jointUpperLimit=self.sim.finger_travel_m,
+                                 physicsClientId=self.client)
 
     def _measure_tip_offset(self) -> float:
         """How far the finger pads reach below the grasp-target frame (m, ~0.011), with the hand top-down."""
@@ -113,7 +116,7 @@ class Hand:
         return float(p.getEulerFromQuaternion(orn)[2])
 
     def finger_gap_m(self) -> float:
-        """Distance between the finger pads (m): 0.08 fully open, ~0 closed on nothing."""
+        """Distance between the finger pads (m): 2 * sim.finger_travel_m fully open, ~0 closed on nothing."""
         states = p.getJointStates(self.body_id, self.finger_joints, physicsClientId=self.client)
         return float(states[0][0] + states[1][0])
 
@@ -125,7 +128,7 @@ class Hand:
     def set_fingers(self, closed: bool) -> None:
         """Command both fingers: position control, force-limited so a grasp squeezes instead of crushing,
         speed-limited so a finger landing on an object's edge pushes it instead of throwing it."""
-        target = 0.0 if closed else FINGER_OPEN_M
+        target = 0.0 if closed else self.sim.finger_travel_m
         for joint in self.finger_joints:  # (setJointMotorControlArray takes no speed limit)
             p.setJointMotorControl2(self.body_id, joint, p.POSITION_CONTROL, targetPosition=target,
                                     force=self.sim.finger_force_n, maxVelocity=self.sim.finger_speed_mps,
@@ -134,7 +137,7 @@ class Hand:
     def actuate_fingers(self, closed: bool, budget: StepBudget) -> None:
         """Close or open and step until the fingers stop moving (or a full stroke's time / the budget run out)."""
         self.set_fingers(closed)
-        max_steps = math.ceil(FINGER_OPEN_M / self.sim.finger_speed_mps / self.sim.time_step_s) + 60
+        max_steps = math.ceil(self.sim.finger_travel_m / self.sim.finger_speed_mps / self.sim.time_step_s) + 60
         previous = self.finger_gap_m()
         for i in range(max_steps):
             if not budget.step():
@@ -222,7 +225,7 @@ class PandaArm(Hand):
         for j, q in zip(ARM_JOINTS, HOME_Q, strict=True):
             p.resetJointState(self.body_id, j, q, physicsClientId=self.client)
         for j in FINGER_JOINTS:
-            p.resetJointState(self.body_id, j, FINGER_OPEN_M, physicsClientId=self.client)
+            p.resetJointState(self.body_id, j, self.sim.finger_travel_m, physicsClientId=self.client)
         self._command_arm(HOME_Q)
         self.set_fingers(closed=False)
 

@@ -15,6 +15,15 @@ directory's name, or run-ckpt for a checkpoint directory) and their comparison, 
 every metric over the checkpoints, to DIR/comparison.md, .json and .png:
 
     romannet eval runs/stack-s1 runs/stack-s2 runs/stack-s3 --goal-height 4 --protocol frozen --out cmp/
+
+--policy oracle (the scripted oracle: the simulator's ceiling) or --policy random (random valid actions: the
+floor) runs through the same protocol, seeds and report without a checkpoint. CHECKPOINT is then optional:
+given, its run's config.toml is used; else --config or the defaults, and --task unless the config names
+one. Neither learns, so both run frozen. Outputs: <run>/eval/<policy>-<task>-frozen-<time>/, or
+eval/<policy>-<task>-frozen-<time>/ without a run (or --out):
+
+    romannet eval --policy oracle --config configs/experiments/clutter.toml --objects 30 --runs 10
+    romannet eval --policy random --task stacking --goal-height 4 --runs 10 --out eval/random-h4
 """
 
 from __future__ import annotations
@@ -32,16 +41,23 @@ from typing import Any
 
 from romannet.common.errors import RomannetError
 
+from .policies import DESCRIPTION, POLICIES, SCRIPTED
+
 log = logging.getLogger("romannet.eval")
 
 EXAMPLE = "romannet eval runs/stack-h4 --task stacking --goal-height 2 3 4 5 --runs 30"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT",
+    p.add_argument("checkpoints", nargs="*", metavar="CHECKPOINT",
                    help="a run directory (newest checkpoint) or a ckpt-* directory; several: compared on the "
-                        "same scenes (needs --out)")
-    p.add_argument("--task", choices=["clutter", "arrangement", "stacking"], help="default: the run's task")
+                        "same scenes (needs --out); optional with --policy oracle|random (then its run's config)")
+    p.add_argument("--policy", choices=POLICIES, default="net",
+                   help="net: the checkpoint's greedy policy (default); oracle: the scripted oracle (the "
+                        "simulator's ceiling); random: random valid actions (the floor); both need no "
+                        "checkpoint and run frozen")
+    p.add_argument("--task", choices=["clutter", "arrangement", "stacking"],
+                   help="default: the run's (or --config's) task")
     p.add_argument("--protocol", choices=["paper", "frozen"], default="paper",
                    help="paper: weights reset to the checkpoint every run, learning within the run (default); "
                         "frozen: no learning")
@@ -63,6 +79,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="override a config field (repeatable)")
 
 
+def _checkpoint_interval(run_dir: Path) -> str:
+    """How often the run's learner writes a checkpoint, in words, from its config.toml."""
+    from romannet.common.config import load_config
+
+    try:
+        every = load_config(run_dir / "config.toml").learner.checkpoint_every_updates
+    except Exception:  # an unreadable config must not hide the message it is part of
+        return "every learner.checkpoint_every_updates updates"
+    return f"every {every} updates"
+
+
 def resolve_checkpoint(path: Path) -> tuple[Path, Path]:
     """(checkpoint directory, run directory) for a run directory or a checkpoint directory."""
     if (path / "tensors.safetensors").is_file():
@@ -74,6 +101,9 @@ def resolve_checkpoint(path: Path) -> tuple[Path, Path]:
     except FileNotFoundError as err:
         raise RomannetError(str(err)) from None
     if ckpt is None:
+        if (path / "config.toml").is_file() or (path / "checkpoints").is_dir():
+            raise RomannetError(f"{path} has no checkpoint yet: the learner writes one "
+                                f"{_checkpoint_interval(path)} and when it stops")
         raise RomannetError(f"{path} is neither a checkpoint directory nor a run directory with checkpoints/LATEST")
     return ckpt, path
 
@@ -88,22 +118,25 @@ def _machine() -> str:
 
 @dataclass(frozen=True)
 class CheckpointPlan:
-    """One checkpoint's evaluation, resolved and validated before any run starts."""
+    """One checkpoint's (or scripted policy's) evaluation, resolved and validated before any run starts."""
 
-    path: Path  # as given
-    ckpt: Path
-    run_dir: Path
-    config_path: Path
+    path: Path | None  # as given (None: a scripted policy without a run)
+    ckpt: Path | None  # None for the oracle and random policies
+    run_dir: Path | None
+    config_path: Path | None  # None: the defaults
     config_toml: str
     state: dict
     task: str
     heights: list[int]
     cases_dir: str | None
     specs: list  # of runner.RunSpec
+    policy: str = "net"
 
     @property
     def name(self) -> str:
         """The run directory's name, plus the checkpoint's when a ckpt-* directory was given."""
+        if self.ckpt is None or self.path is None or self.run_dir is None:
+            return self.policy
         if self.path.resolve() == self.ckpt.resolve():
             return f"{self.run_dir.name}-{self.ckpt.name}"
         return self.run_dir.name
@@ -111,11 +144,7 @@ class CheckpointPlan:
 
 def plan_checkpoint(args: argparse.Namespace, path: Path) -> CheckpointPlan:
     """Resolve a checkpoint, load and check its config, and plan its runs; RomannetError on bad input."""
-    from romannet.actor.sim.arrangements import default_cases_dir, load_case
     from romannet.common.config import load_config
-    from romannet.common.configbase import dumps_toml
-
-    from .protocol import plan_runs
 
     ckpt, run_dir = resolve_checkpoint(path)
     config_path = Path(args.config) if args.config else run_dir / "config.toml"
@@ -128,7 +157,44 @@ def plan_checkpoint(args: argparse.Namespace, path: Path) -> CheckpointPlan:
     if trained_model is not None and trained_model != json.loads(json.dumps(_as_dict(cfg.model))):
         raise RomannetError(f"{ckpt} was trained with model config {trained_model}; the config says "
                             f"{_as_dict(cfg.model)}")
-    task = args.task or cfg.task.kind
+    if state.get("updates") == 0:
+        log.warning("%s is at update 0: an untrained net, so its numbers say nothing about learning", ckpt)
+    return _plan_tests(args, cfg, path=path, ckpt=ckpt, run_dir=run_dir, config_path=config_path, state=state,
+                       task=args.task or cfg.task.kind)
+
+
+def plan_scripted(args: argparse.Namespace) -> CheckpointPlan:
+    """The plan of --policy oracle|random: the config of the run given (if any), of --config or the defaults."""
+    from romannet.common.config import load_config
+
+    if len(args.checkpoints) > 1:
+        raise RomannetError(f"--policy {args.policy} takes at most one CHECKPOINT (whose run's config it uses), "
+                            f"got {len(args.checkpoints)}")
+    path = Path(args.checkpoints[0]) if args.checkpoints else None
+    run_dir = None
+    if path is not None:
+        run_dir = path.parent.parent if (path / "tensors.safetensors").is_file() else path
+    config_path = Path(args.config) if args.config else (run_dir / "config.toml" if run_dir else None)
+    if config_path is not None and not config_path.is_file():
+        raise RomannetError(f"{config_path} does not exist: pass --config with a recipe (e.g. "
+                            "configs/experiments/clutter.toml)")
+    cfg = load_config(config_path, args.overrides)
+    names_task = config_path is not None or any(o.split("=", 1)[0].strip() == "task.kind" for o in args.overrides)
+    if not args.task and not names_task:
+        raise RomannetError(f"--policy {args.policy} without a run or --config: pass --task (clutter, arrangement "
+                            "or stacking)")
+    return _plan_tests(args, cfg, path=path, ckpt=None, run_dir=run_dir, config_path=config_path, state={},
+                       task=args.task or cfg.task.kind)
+
+
+def _plan_tests(args: argparse.Namespace, cfg: Any, *, path: Path | None, ckpt: Path | None,
+                run_dir: Path | None, config_path: Path | None, state: dict, task: str) -> CheckpointPlan:
+    """The runs of an evaluation (cases, heights, seeds) under cfg; RomannetError on bad task flags."""
+    from romannet.actor.sim.arrangements import default_cases_dir, load_case
+    from romannet.common.configbase import dumps_toml
+
+    from .protocol import plan_runs
+
     case_files: list[Path] = []
     case_objects: list[int] = []
     if task == "arrangement":
@@ -145,7 +211,23 @@ def plan_checkpoint(args: argparse.Namespace, path: Path) -> CheckpointPlan:
                       max_steps=args.max_steps)
     return CheckpointPlan(path=path, ckpt=ckpt, run_dir=run_dir, config_path=config_path,
                           config_toml=dumps_toml(cfg), state=state, task=task, heights=list(heights),
-                          cases_dir=str(case_files[0].parent) if case_files else None, specs=specs)
+                          cases_dir=str(case_files[0].parent) if case_files else None, specs=specs,
+                          policy=args.policy)
+
+
+def effective_protocol(args: argparse.Namespace) -> str:
+    """The protocol runs follow: the one asked for on a net; frozen for the oracle and random (they never learn)."""
+    return "frozen" if args.policy in SCRIPTED else args.protocol
+
+
+def _header_policy(args: argparse.Namespace, plan: CheckpointPlan) -> dict[str, Any]:
+    """What acted, for the report's header; for a scripted policy a note that it ran frozen."""
+    fields: dict[str, Any] = {"policy": plan.policy, "policy_description": DESCRIPTION[plan.policy]}
+    if plan.policy in SCRIPTED:
+        fields["protocol_note"] = f"the {plan.policy} policy does not learn: evaluated frozen"
+        if args.protocol == "paper":
+            fields["protocol_note"] += " (--protocol paper applies to a net only)"
+    return fields
 
 
 def evaluate(args: argparse.Namespace, plan: CheckpointPlan, out_dir: Path) -> dict[str, Any]:
@@ -160,27 +242,36 @@ def evaluate(args: argparse.Namespace, plan: CheckpointPlan, out_dir: Path) -> d
     out_dir.mkdir(parents=True, exist_ok=True)
     journal = out_dir / "runs.jsonl"
     (out_dir / "config.toml").write_text(plan.config_toml, encoding="utf-8")
-    setup = EvalSetup(config_toml=plan.config_toml, checkpoint=str(plan.ckpt), protocol=args.protocol,
-                      threads=max(1, cores // workers))
+    protocol = effective_protocol(args)
+    setup = EvalSetup(config_toml=plan.config_toml, checkpoint=str(plan.ckpt or ""), protocol=protocol,
+                      threads=max(1, cores // workers), policy=plan.policy)
     progress = Progress(len(plan.specs))
-    log.info("evaluating %s on %s (%s protocol): %d runs on %d worker(s), output in %s", plan.ckpt, plan.task,
-             args.protocol, len(plan.specs), workers, out_dir)
+    log.info("evaluating %s on %s (%s protocol): %d runs on %d worker(s), output in %s", plan.ckpt or plan.policy,
+             plan.task, protocol, len(plan.specs), workers, out_dir)
     start = time.monotonic()
     runs = execute(setup, plan.specs, workers, journal, on_run=lambda r: progress.update(r, completed(r)))
-    header = {"checkpoint": str(plan.ckpt), "updates": plan.state.get("updates"), "task": plan.task,
-              "protocol": args.protocol, "runs_per_case": args.runs, "base_seed": args.seed,
+    header = {"checkpoint": str(plan.ckpt) if plan.ckpt else None, "updates": plan.state.get("updates"),
+              **_header_policy(args, plan), "task": plan.task, "protocol": protocol, "runs_per_case": args.runs,
+              "base_seed": args.seed,
               "planned_runs": len(plan.specs), "interrupted": len(runs) < len(plan.specs), "workers": workers,
               "machine": _machine(), "date": dt.datetime.now().isoformat(timespec="seconds"),
               "wall_s": time.monotonic() - start,
               "object_set": args.object_set if plan.task == "clutter" else None,
               "num_objects": args.objects if plan.task == "clutter" else None,
               "goal_heights": plan.heights if plan.task == "stacking" else None,
-              "cases_dir": plan.cases_dir, "overrides": list(args.overrides), "config": str(plan.config_path)}
+              "cases_dir": plan.cases_dir, "overrides": list(args.overrides),
+              "config": str(plan.config_path) if plan.config_path else "defaults"}
     report = build_report(runs, header)
     paths = write_outputs(report, out_dir)
     print(markdown(report))
     print(f"written: {', '.join(str(p) for p in paths.values())}")
     return report
+
+
+def default_out_dir(args: argparse.Namespace, plan: CheckpointPlan, stamp: str) -> Path:
+    """<run>/eval/<task>-<protocol>-<time> for a net; [<run>/]eval/<policy>-<task>-frozen-<time> otherwise."""
+    prefix = f"{plan.policy}-" if plan.policy in SCRIPTED else ""
+    return (plan.run_dir or Path()) / "eval" / f"{prefix}{plan.task}-{effective_protocol(args)}-{stamp}"
 
 
 def _same_tests(plans: list[CheckpointPlan]) -> None:
@@ -198,16 +289,20 @@ def run(args: argparse.Namespace) -> int:
     from .compare import compare, markdown, unique_names, write_comparison
 
     paths = [Path(p) for p in args.checkpoints]
-    if len(paths) > 1 and not args.out:
-        raise RomannetError(f"{len(paths)} checkpoints: pass --out DIR (each checkpoint's report goes to "
-                            "DIR/<name>/, their comparison to DIR/comparison.md)")
-    plans = [plan_checkpoint(args, p) for p in paths]  # every input checked before the first run
+    if args.policy in SCRIPTED:
+        plans = [plan_scripted(args)]
+    else:
+        if not paths:
+            raise RomannetError("no CHECKPOINT: pass a run directory or a ckpt-* directory, or --policy oracle|random")
+        if len(paths) > 1 and not args.out:
+            raise RomannetError(f"{len(paths)} checkpoints: pass --out DIR (each checkpoint's report goes to "
+                                "DIR/<name>/, their comparison to DIR/comparison.md)")
+        plans = [plan_checkpoint(args, p) for p in paths]  # every input checked before the first run
     _same_tests(plans)
     stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     names = unique_names([p.name for p in plans])
     if len(plans) == 1:
-        default = plans[0].run_dir / "eval" / f"{plans[0].task}-{args.protocol}-{stamp}"
-        out_dirs = [Path(args.out) if args.out else default]
+        out_dirs = [Path(args.out) if args.out else default_out_dir(args, plans[0], stamp)]
     else:
         out_dirs = [Path(args.out) / name for name in names]
     for out_dir in out_dirs:

@@ -39,9 +39,13 @@ def _row(name: str, s: Summary) -> str:
 
 def markdown(report: dict[str, Any]) -> str:
     """The report as a Markdown section: what was evaluated, then one row per case and the total."""
-    lines = [f"### {report['task']} — protocol `{report['protocol']}`", "",
-             f"Checkpoint `{report['checkpoint']}` (update {report.get('updates', '?')}), "
-             f"{report['runs_per_case']} runs per case, seeds from {report['base_seed']}, greedy policy, "
+    policy = report.get("policy", "net")  # reports written before the oracle/random policies: a net
+    if policy == "net":
+        who = f"Checkpoint `{report['checkpoint']}` (update {report.get('updates', '?')}), greedy policy"
+    else:
+        who = f"Policy: {report.get('policy_description', policy)}; {report.get('protocol_note', 'frozen')}"
+    lines = [f"### {report['task']} — policy `{policy}` — protocol `{report['protocol']}`", "",
+             f"{who}; {report['runs_per_case']} runs per case, seeds from {report['base_seed']}, "
              f"{report['workers']} worker process(es), {report['wall_s']:.0f} s on {report['machine']}."]
     if report.get("interrupted"):
         lines.append(f"**Interrupted**: {len(report['runs'])} of {report['planned_runs']} planned runs finished.")
@@ -105,7 +109,8 @@ def plot(report: dict[str, Any], path: Path) -> Path | None:
                ("action_efficiency", "action efficiency")]
     series = {label: [100 * (report["cases"][n][key] or 0.0) for n in names] for key, label in metrics}
     return bar_chart(path, names, series, ylabel="%",
-                     title=f"{report['task']} ({report['protocol']} protocol, {report['runs_per_case']} runs per case)")
+                     title=f"{report['task']}, policy {report.get('policy', 'net')} ({report['protocol']} protocol, "
+                           f"{report['runs_per_case']} runs per case)")
 
 
 def write_outputs(report: dict[str, Any], out_dir: Path) -> dict[str, Path]:

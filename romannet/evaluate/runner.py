@@ -1,4 +1,5 @@
-"""One evaluation run in a worker process: fresh scene from a seed, greedy RoManNet, until the task ends.
+"""One evaluation run in a worker process: fresh scene from a seed, greedy RoManNet (or the scripted oracle,
+or random valid actions: policies.py), until the task ends.
 
 Protocols (the paper's "Evaluation Metrics"):
   frozen  the checkpoint's weights, no learning at all.
@@ -7,6 +8,7 @@ Protocols (the paper's "Evaluation Metrics"):
           transition (batch of one, the learner's loss, optimiser settings and target), so it can learn
           within the run; the next decision uses the updated weights. The optimiser's momentum is reset
           with the weights.
+The oracle and random policies have no weights and never learn: they always run as frozen.
 
 A worker keeps its simulator, inference engine and trainer between runs (rebuilt only when the task
 changes), so a run costs its actions, not start-up. Everything here is per process: one worker, one
@@ -27,14 +29,18 @@ import safetensors.torch
 import torch
 
 from romannet.actor.sim.env import SimEnv
+from romannet.actor.sim.oracle import oracle_action
 from romannet.actor.sim.tasks import objects_in_workspace
+from romannet.common.action import Action
 from romannet.common.config import Config, load_config_text
+from romannet.common.interfaces import Observation
 from romannet.common.model import RoManNet, load_tensors
 from romannet.common.policy import InferenceEngine, decide
 from romannet.common.wire_messages import TransitionMsg
 from romannet.learner.trainer import Trainer
 
 from .metrics import RunLog, StepLog, ideal_actions
+from .policies import POLICIES, random_action
 
 log = logging.getLogger(__name__)
 
@@ -47,9 +53,21 @@ class EvalSetup:
     """What every run of one evaluation shares (sent to each worker once)."""
 
     config_toml: str  # the resolved config the checkpoint was trained with, plus the eval's overrides
-    checkpoint: str  # a ckpt-* directory holding tensors.safetensors
+    checkpoint: str  # a ckpt-* directory holding tensors.safetensors ("" for the oracle and random policies)
     protocol: str  # "paper" or "frozen"
     threads: int = 1  # torch threads per worker
+    policy: str = "net"  # one of policies.POLICIES
+
+    def __post_init__(self) -> None:
+        if self.policy not in POLICIES:
+            raise ValueError(f"unknown policy {self.policy!r}: expected one of {', '.join(POLICIES)}")
+        if self.policy == "net" and not self.checkpoint:
+            raise ValueError("the net policy needs a checkpoint")
+
+    @property
+    def learning(self) -> bool:
+        """Whether runs learn within themselves (the paper protocol on a net)."""
+        return self.policy == "net" and self.protocol == "paper"
 
 
 @dataclass(frozen=True)
@@ -94,9 +112,13 @@ class Worker:
         torch.set_num_threads(max(1, setup.threads))
         self.setup = setup
         self.base = load_config_text(setup.config_toml)
-        self.weights = load_model_tensors(setup.checkpoint)
-        self.engine = InferenceEngine(RoManNet(self.base.model), self.base.model, parallel_nets=setup.threads >= 2)
-        self.engine.load_state(self.weights)
+        self.weights: dict[str, torch.Tensor] = {}
+        self.engine: InferenceEngine | None = None
+        if setup.policy == "net":
+            self.weights = load_model_tensors(setup.checkpoint)
+            self.engine = InferenceEngine(RoManNet(self.base.model), self.base.model,
+                                          parallel_nets=setup.threads >= 2)
+            self.engine.load_state(self.weights)
         self._env: SimEnv | None = None
         self._env_key: tuple | None = None
         self._trainer: Trainer | None = None
@@ -105,7 +127,8 @@ class Worker:
     def close(self) -> None:
         if self._env is not None:
             self._env.close()
-        self.engine.close()
+        if self.engine is not None:
+            self.engine.close()
 
     def env(self, cfg: Config) -> SimEnv:
         key = (cfg.task, cfg.sim)
@@ -126,6 +149,15 @@ class Worker:
         t.optimizer.state.clear()  # momentum restarts with the weights
         return t
 
+    def act(self, env: SimEnv, obs: Observation, cfg: Config, rng: np.random.Generator) -> Action:
+        """The next action of this evaluation's policy."""
+        if self.engine is not None:
+            return decide(self.engine, obs.color_hm, obs.depth_hm, obs.holding, 0.0, rng, env.primitives,
+                          cfg.exploration)
+        if self.setup.policy == "oracle":
+            return oracle_action(env)
+        return random_action(obs.holding, env.primitives, obs.depth_hm.shape, rng)
+
     def run(self, spec: RunSpec) -> RunLog:
         """Play one run to its end; an exception becomes a run that ended with "error: …"."""
         start = time.perf_counter()
@@ -139,22 +171,21 @@ class Worker:
     def _run(self, spec: RunSpec, start: float) -> RunLog:
         cfg = run_config(self.base, spec)
         env = self.env(cfg)
-        learning = self.setup.protocol == "paper"
-        trainer = self.trainer(cfg) if learning else None
-        self.engine.load_state(self.weights)
+        trainer = self.trainer(cfg) if self.setup.learning else None
+        if self.engine is not None:
+            self.engine.load_state(self.weights)
         obs = env.reset(spec.seed)
         present = int(objects_in_workspace(env.scene))
         ideal = ideal_actions(spec.task, max(1, present), spec.goal_height)
-        rng = np.random.default_rng(spec.seed)  # greedy: only ties would draw from it
+        rng = np.random.default_rng(spec.seed)  # greedy: only ties would draw from it; random: every action
         steps: list[StepLog] = []
         end_reason = "step_limit"
         for step in range(spec.max_steps):
-            action = decide(self.engine, obs.color_hm, obs.depth_hm, obs.holding, 0.0, rng, env.primitives,
-                            cfg.exploration)
+            action = self.act(env, obs, cfg, rng)
             t0 = time.time_ns()
             result = env.step(action)
             steps.append(StepLog(action.primitive, bool(result.success)))
-            if trainer is not None:
+            if trainer is not None and self.engine is not None:
                 msg = TransitionMsg(
                     actor_id="eval", episode_id=f"{spec.case}-{spec.seed}", step=step, start_ns=t0,
                     end_ns=max(t0, time.time_ns()), task=spec.task, color_before=obs.color_hm,
