@@ -12,27 +12,38 @@ Everything the next update depends on is saved: weights and BN statistics, the S
 target net, the update counter, the exploration rate, and the torch / numpy / python RNG states. On a CPU
 with the same thread count the update after a resume is bit-identical to the uninterrupted run's
 (tests/test_checkpoint.py).
+
+Starting a run from trained weights (`--init-from`) reads the online net out of a checkpoint, a run
+directory (its newest checkpoint) or a model package (models/<experiment>/, packed by romannet/models.py:
+weights.safetensors in bf16, its config.toml and model.json with the weights' sha256); the update counter,
+the optimiser and the exploration rate start fresh.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import os
 import random
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import safetensors.torch
 import torch
 
+from romannet.common.config import Config, ModelConfig, load_config
+from romannet.common.errors import RomannetError
+from romannet.common.exploration import ExplorationRate
 from romannet.common.fsutil import fsync_directory
-from romannet.common.model import load_tensors, state_dict_to_tensors
+from romannet.common.model import RoManNet, load_tensors, state_dict_to_tensors, validate_tensors
 
-from .trainer import Trainer
+if TYPE_CHECKING:  # only for annotations: reading weights (romannet models, --init-from checks) stays light
+    from .trainer import Trainer
 
 logger = logging.getLogger(__name__)
 
@@ -177,3 +188,163 @@ def load_checkpoint(trainer: Trainer, run_dir: str | Path, path: str | Path | No
     _set_rng_state(tensors, state["rng"])
     logger.info("resumed from %s (update %d)", ckpt, trainer.updates)
     return ckpt
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Model packages and --init-from
+
+PACKAGE_META = "model.json"
+PACKAGE_WEIGHTS = "weights.safetensors"
+PACKAGE_CONFIG = "config.toml"
+PACKAGE_FORMAT = 1
+# BN running statistics stay fp32 in a package: they are 0.3 % of the bytes, and a running variance rounded
+# to bf16's 8 bits moves every normalised activation after it (measured in romannet/models.py's docstring).
+FP32_IN_PACKAGE = ("running_mean", "running_var")
+# The fields that make the same weights the same function: precision, channels_last and num_threads say how
+# a process computes it, q_head_init only how a fresh net starts, so a run may differ from its source there.
+ARCHITECTURE_FIELDS = ("channels", "residual_blocks", "rotation_harmonics", "dropout")
+
+
+def to_package_dtypes(tensors: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """A state dict as a package stores it: floating tensors in bf16 but BN running statistics, integers as is."""
+    return {k: v.to(torch.bfloat16).contiguous() if v.is_floating_point() and not k.endswith(FP32_IN_PACKAGE)
+            else v.contiguous() for k, v in tensors.items()}
+
+
+def from_package_dtypes(tensors: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Every floating tensor back to fp32, what RoManNet, the learner and the actors hold (exact: bf16 ⊂ fp32)."""
+    return {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}
+
+
+def sha256_file(path: str | Path) -> str:
+    """Hex sha256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def is_model_package(path: str | Path) -> bool:
+    """A packaged model directory is recognised by its model.json."""
+    return (Path(path) / PACKAGE_META).is_file()
+
+
+def architecture(model: ModelConfig | Mapping[str, Any]) -> dict[str, Any]:
+    """The ARCHITECTURE_FIELDS of a model config (a dataclass or its saved dict)."""
+    data = dataclasses.asdict(model) if isinstance(model, ModelConfig) else dict(model)
+    return {k: data.get(k) for k in ARCHITECTURE_FIELDS}
+
+
+def _load_safetensors(path: Path) -> dict[str, torch.Tensor]:
+    if not path.is_file():
+        raise RomannetError(f"{path} does not exist")
+    try:
+        return safetensors.torch.load_file(str(path))
+    except Exception as err:  # safetensors has its own error type for every kind of malformed file
+        raise RomannetError(f"{path} is not a readable safetensors file ({err})") from None
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise RomannetError(f"{path} does not exist") from None
+    except (OSError, ValueError) as err:
+        raise RomannetError(f"{path} is not readable JSON ({err})") from None
+    if not isinstance(data, dict):
+        raise RomannetError(f"{path} holds {type(data).__name__}, not a JSON object")
+    return data
+
+
+def check_tensors(tensors: Mapping[str, torch.Tensor], model_cfg: ModelConfig,
+                  where: Path) -> dict[str, torch.Tensor]:
+    """`tensors` if they are exactly a RoManNet(model_cfg)'s names, shapes and dtypes, all finite."""
+    try:
+        validate_tensors(RoManNet(model_cfg), tensors)
+    except RomannetError as err:
+        raise RomannetError(f"{where}: {err}") from None
+    return dict(tensors)
+
+
+def read_package(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any], Config]:
+    """(fp32 tensors, model.json, Config) of a model package, checked: every file there, the weights' sha256
+    as model.json says, a valid config, and tensors that fit that config's model. RomannetError otherwise."""
+    path = Path(path)
+    missing = [n for n in (PACKAGE_META, PACKAGE_WEIGHTS, PACKAGE_CONFIG) if not (path / n).is_file()]
+    if missing:
+        raise RomannetError(f"{path} is not a complete model package: {', '.join(missing)} missing")
+    meta = _read_json(path / PACKAGE_META)
+    if meta.get("format") != PACKAGE_FORMAT:
+        raise RomannetError(f"{path / PACKAGE_META} has format {meta.get('format')!r}; this version reads "
+                            f"{PACKAGE_FORMAT}")
+    expected = (meta.get("weights") or {}).get("sha256")
+    actual = sha256_file(path / PACKAGE_WEIGHTS)
+    if actual != expected:
+        raise RomannetError(f"{path / PACKAGE_WEIGHTS} has sha256 {actual[:12]}…, model.json says "
+                            f"{str(expected)[:12]}…: the file is corrupt or was replaced")
+    cfg = load_config(path / PACKAGE_CONFIG)
+    tensors = from_package_dtypes(_load_safetensors(path / PACKAGE_WEIGHTS))
+    return check_tensors(tensors, cfg.model, path / PACKAGE_WEIGHTS), meta, cfg
+
+
+def read_checkpoint_model(ckpt: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """(online net's tensors, state.json) of one checkpoint directory (unvalidated)."""
+    ckpt = Path(ckpt)
+    state = _read_json(ckpt / "state.json")
+    tensors = _load_safetensors(ckpt / "tensors.safetensors")
+    model = {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
+    if not model:
+        raise RomannetError(f"{ckpt / 'tensors.safetensors'} holds no model/ tensors: not a learner checkpoint")
+    return model, state
+
+
+def weights_source(path: str | Path) -> tuple[str, Path]:
+    """("package" | "checkpoint", directory) for a model package, a checkpoint or a run directory (its newest
+    checkpoint); RomannetError naming what was expected otherwise."""
+    path = Path(path)
+    if not path.is_dir():
+        raise RomannetError(f"{path} is not a directory (a model package, a checkpoint or a run directory)")
+    if is_model_package(path):
+        return "package", path
+    if (path / "tensors.safetensors").is_file() or (path / "state.json").is_file():
+        return "checkpoint", path
+    try:
+        ckpt = latest_checkpoint(path)
+    except FileNotFoundError as err:
+        raise RomannetError(str(err)) from None
+    if ckpt is None:
+        raise RomannetError(f"{path} is neither a model package (model.json), a checkpoint (tensors.safetensors) "
+                            "nor a run directory with checkpoints/LATEST")
+    return "checkpoint", ckpt
+
+
+def read_init_weights(path: str | Path, model_cfg: ModelConfig) -> tuple[dict[str, torch.Tensor], str]:
+    """The online net's fp32 tensors of a package, checkpoint or run directory, checked to fit a run whose model
+    config is model_cfg (same architecture, then names, shapes, finite values); also a description for logs."""
+    kind, where = weights_source(path)
+    if kind == "package":
+        tensors, meta, cfg = read_package(where)
+        source_model: Mapping[str, Any] = dataclasses.asdict(cfg.model)
+        what = (f"model package {where} (update {meta.get('updates')}, sha256 "
+                f"{str((meta.get('weights') or {}).get('sha256'))[:12]})")
+    else:
+        tensors, state = read_checkpoint_model(where)
+        source_model = (state.get("config") or {}).get("model") or {}
+        what = f"checkpoint {where} (update {state.get('updates')})"
+    theirs, ours = architecture(source_model), architecture(model_cfg)
+    if theirs != ours:
+        diff = [k for k in ARCHITECTURE_FIELDS if theirs[k] != ours[k]]
+        raise RomannetError(f"{path} was trained with model {', '.join(f'{k}={theirs[k]}' for k in diff)}, this run "
+                            f"has {', '.join(f'{k}={ours[k]}' for k in diff)}: give the run the same [model] section")
+    return check_tensors(tensors, model_cfg, where), what
+
+
+def start_from_weights(trainer: Trainer, tensors: Mapping[str, torch.Tensor]) -> None:
+    """Put `tensors` (validated) in the online and target nets of a new run: update counter 0, no momentum,
+    the exploration rate at its start."""
+    load_tensors(trainer.model, tensors)
+    trainer.sync_target()
+    trainer.optimizer.state.clear()
+    trainer.updates = 0
+    trainer.exploration = ExplorationRate(trainer.exploration_cfg)

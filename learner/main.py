@@ -3,14 +3,16 @@
     romannet learner --config run.toml --run-dir runs/run-1 --connect tcp/127.0.0.1:7447
     romannet learner --run-dir runs/run-1 --resume --connect tcp/127.0.0.1:7447
     romannet learner --config run.toml --run-dir runs/off-1 --offline recordings/ --max-updates 2000 ...
+    romannet learner --config run.toml --run-dir runs/ft-1 --init-from models/clutter --connect ...
 
 The TOML file is the fleet config (configs/default.toml): run_id picks the keys, [workspace] the heightmap
 size every sampled transition must have, [learner] the training (common/config_learner.py). With --resume
 and no --config, the run directory's saved config.toml is used (plus any --set overrides), so a resumed run
 trains what the interrupted one did. --offline DIR feeds MCAP episode recordings to the replay server
-first (learner/offline.py); --max-updates N stops at update N as a signal would. A signal sets a stop
-event; the learner finishes the step under way, publishes its weights, writes a checkpoint, closes the
-session, and the process exits 0.
+first (learner/offline.py); --max-updates N stops at update N as a signal would. --init-from DIR starts a
+new run from a model package's, a run's or a checkpoint's weights (learner/checkpoint.py), checked before
+the session opens. A signal sets a stop event; the learner finishes the step under way, publishes its
+weights, writes a checkpoint, closes the session, and the process exits 0.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from romannet.common.signals import stop_on_signals
 from romannet.common.zenoh_session import make_config, open_session
 
 from .batches import TolerantReplayClient
-from .checkpoint import latest_checkpoint
+from .checkpoint import latest_checkpoint, read_init_weights
 from .offline import prefill
 from .service import ServiceOptions, run_learner
 
@@ -58,8 +60,16 @@ def check_run_dir(run_dir: Path, resume: bool) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the learner for parsed CLI arguments (see romannet/cli.py); returns the exit code."""
     run_dir = Path(args.run_dir)
+    init_from = getattr(args, "init_from", None)
+    if init_from and args.resume:
+        raise RomannetError("--init-from starts a new run from other weights, --resume continues this run's "
+                            "checkpoint: pass one of them")
     check_run_dir(run_dir, args.resume)
     config = resolve_config(args.config, args.overrides, run_dir, args.resume)
+    init_weights = None
+    if init_from:
+        init_weights, what = read_init_weights(init_from, config.model)
+        log.info("starting from the weights of %s", what)
     zenoh_config = make_config(args.zenoh_config, listen=args.listen or None, connect=args.connect or None)
     ws = config.workspace
     stop = threading.Event()
@@ -71,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
                 prefill(client, args.offline, stop)
             options = ServiceOptions(max_updates=max(0, getattr(args, "max_updates", 0) or 0))
             run_learner(config, run_dir, client, session, stop, resume=args.resume, options=options,
+                        init_weights=init_weights,
                         ready=lambda trainer: log.info("learner ready (run %s, dir %s, update %d)",
                                                        config.run_id, run_dir, trainer.updates))
     return 0

@@ -24,7 +24,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,7 +42,7 @@ from romannet.common.model import preprocess
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 from romannet.common.zenoh_session import ZenohQueryError
 
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import load_checkpoint, save_checkpoint, start_from_weights
 from .gate import ReplayGate
 from .metrics import LearnerMetrics
 from .publisher import WeightsPublisher
@@ -85,11 +85,13 @@ class _Counters:
 
 def run_learner(cfg: Config, run_dir: str | Path, replay_client: ReplayClient, session: zenoh.Session,
                 stop_event: threading.Event, resume: bool = False, options: ServiceOptions | None = None,
-                ready: Callable[[Trainer], None] | None = None) -> dict[str, Any]:
+                ready: Callable[[Trainer], None] | None = None,
+                init_weights: Mapping[str, torch.Tensor] | None = None) -> dict[str, Any]:
     """Train until stop_event is set; returns a summary (updates, skipped items, ...).
 
     cfg: the root config (its learner, model, reward, task, exploration sections and run_id).
     resume: continue from the checkpoint in run_dir (FileNotFoundError if there is none).
+    init_weights: a new run's starting weights (checkpoint.read_init_weights), published as version 0.
     ready(trainer): called once weights are published and the liveliness token is up.
     """
     opts = options or ServiceOptions()
@@ -99,6 +101,8 @@ def run_learner(cfg: Config, run_dir: str | Path, replay_client: ReplayClient, s
     trainer = Trainer(cfg.model, lcfg, cfg.reward, cfg.task, exploration_cfg=cfg.exploration, device=lcfg.device)
     if resume:
         load_checkpoint(trainer, run_dir)  # logs the checkpoint and its update count
+    elif init_weights is not None:
+        start_from_weights(trainer, init_weights)
     write_toml(cfg, run_dir / "config.toml")  # the resolved config of this run, next to its results
     keys = RunKeys(cfg.run_id)
     counters = _Counters()

@@ -52,6 +52,9 @@ EXAMPLES = {
     "eval": ("romannet eval runs/stack-h4 --task stacking --goal-height 2 3 4 5 --runs 30\n"
              "  romannet eval runs/clutter --task clutter --objects 30 --object-set novel --protocol frozen\n"
              "  romannet eval runs/clutter --task arrangement"),
+    "models": ("romannet models pack runs/clutter --eval runs/clutter/eval/clutter-frozen-20260101-120000 "
+               "--out models/clutter\n  romannet models check models/clutter\n"
+               "  romannet models check models/clutter --init --config configs/experiments/clutter.toml"),
     "plot": "romannet plot runs/abl-baseline runs/abl-tpg runs/stack-h4 --labels baseline +TPG +TPG+LAE --out abl.png",
     "mcap": ("romannet mcap inspect runs/demo/episodes\n  romannet mcap play runs/demo/episodes/actor-0/ep000000.mcap "
              "--foxglove 8765\n  romannet mcap feed runs/demo/episodes --run-id offline-1 --connect "
@@ -175,6 +178,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return run(args)
 
 
+def cmd_models(args: argparse.Namespace) -> int:
+    from romannet.models import run
+
+    return run(args)
+
+
 def cmd_plot(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -292,6 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "then train: without actors, or mixed with live ones (repeatable)")
     p.add_argument("--max-updates", type=int, default=0, metavar="N",
                    help="stop (checkpoint, exit 0) once the learner reaches update N (default: 0 = until a signal)")
+    p.add_argument("--init-from", metavar="DIR",
+                   help="start a new run from these weights: a model package (models/<experiment>), a run or a "
+                        "checkpoint directory (update counter 0, fresh optimiser; the [model] section must match)")
 
     p = verb("actor", "act in the simulator or on a real robot (UR + RealSense) with the newest weights, send every transition to the replay "
              "server (spooled on disk until acknowledged) and record each episode to MCAP, until "
@@ -332,6 +344,25 @@ def build_parser() -> argparse.ArgumentParser:
     from romannet.evaluate.cli import add_arguments as add_eval_arguments
 
     add_eval_arguments(p)
+
+    p = verb("models", "shipped pretrained policies (models/<experiment>/): `pack` a checkpoint with its eval "
+             "report (bf16 weights, config, report, model.json), `check` a package or an --init-from source",
+             cmd_models)
+    msub = p.add_subparsers(dest="models_cmd", required=True, metavar="<command>")
+    pk = msub.add_parser("pack", help="package a run's newest (or one) checkpoint with its evaluation report",
+                         description="package a run's newest (or one) checkpoint with its evaluation report; "
+                         "refuses to replace a package whose report's completion rate is as good or better")
+    pk.add_argument("source", metavar="RUN_OR_CKPT", help="a run directory (newest checkpoint) or a ckpt-* directory")
+    pk.add_argument("--eval", dest="eval_dir", required=True, metavar="EVAL_DIR",
+                    help="the `romannet eval` output directory of that checkpoint (report.json, report.md)")
+    pk.add_argument("--out", required=True, metavar="DIR", help="the package directory, e.g. models/clutter")
+    pk.add_argument("--force", action="store_true", help="replace an existing package even if it scored better")
+    ck = msub.add_parser("check", help="check a package (files, sha256, tensors), or with --init any weights "
+                         "source against a run's config")
+    ck.add_argument("path", metavar="DIR", help="a model package, or with --init also a run or a checkpoint")
+    ck.add_argument("--init", action="store_true",
+                    help="check DIR as an --init-from source for a run with --config/--set (default config)")
+    _add_config_args(ck)
 
     p = verb("plot", "learning curves (action success rate and efficiency over training actions) of run "
              "directories into one PNG: one line per run, or per label shared by several runs (their mean "

@@ -3,12 +3,14 @@
     romannet up --actors 2 --max-actions 2000
     romannet up --name run-1 --resume
     romannet up --name offline-1 --actors 0 --from-recordings runs/run-1/episodes   (learner/offline.py)
+    romannet up --name ft-1 --config models/clutter/config.toml --init-from models/clutter
 
 Each component runs as its own process (`python -m romannet.cli <verb> ...`: a fresh interpreter, so no
 Zenoh session crosses a fork), with its own Zenoh session in peer mode on loopback and multicast
 scouting off: the replay server and the learner listen on free loopback ports and every process connects
 to those, so discovery needs no multicast. This module only starts processes and reads their outputs;
-it never imports actor, learner or replay code.
+it never imports actor, learner or replay code (--init-from's weights are checked by a `romannet models
+check --init` process before anything starts; the learner starts from them while the run has no checkpoint).
 
 The run directory `<runs-dir>/<name>/` holds (config.toml is written first, before any child starts):
 
@@ -95,6 +97,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "a floating gripper (faster)")
     p.add_argument("--resume", action="store_true", help="restart every component from the run directory: "
                    "the learner from its checkpoint, the replay from its log, actors resend their spools")
+    p.add_argument("--init-from", metavar="DIR", help="start the learner from these weights: a model package "
+                   "(models/<experiment>), a run or a checkpoint directory (update 0, fresh optimiser; the [model] "
+                   "section must match; checked before anything starts)")
     p.add_argument("--stop-timeout", type=float, default=60.0, metavar="S",
                    help="seconds each stage may take to stop cleanly before SIGKILL (default: 60)")
     p.add_argument("--progress-every", type=float, default=30.0, metavar="S",
@@ -139,8 +144,10 @@ def build_specs(run_dir: Path, cfg: Config, args: argparse.Namespace, replay_ep:
         resume = ["--resume"] if (run_dir / "checkpoints" / "LATEST").is_file() else []
         recordings = getattr(args, "from_recordings", [])
         offline = [arg for path in recordings for arg in ("--offline", str(Path(path).resolve()))]
+        init_from = getattr(args, "init_from", None)
+        init = ["--init-from", str(Path(init_from).resolve())] if init_from and not resume else []
         return [*base, "learner", "--config", config, "--run-dir", str(run_dir), "--listen", learner_ep,
-                "--connect", replay_ep, *resume, *offline]
+                "--connect", replay_ep, *resume, *offline, *init]
 
     specs = [
         ChildSpec("replay", [*base, "replay", "--config", config, "--dir", str(run_dir / "replay"),
@@ -218,12 +225,41 @@ def _attach_log_file(path: Path) -> logging.Handler:
     return handler
 
 
+def init_check_argv(args: argparse.Namespace) -> list[str]:
+    """The `romannet models check --init` command that checks --init-from against the run's [model] (which
+    only --config and --set decide), so a bad source is one line here rather than a learner crash loop."""
+    argv = [sys.executable, "-m", "romannet.cli", "--log-level", "WARNING", "models", "check", "--init",
+            str(args.init_from)]
+    if args.config is not None:
+        argv += ["--config", str(args.config)]
+    return argv + [arg for text in args.overrides for arg in ("--set", text)]
+
+
+def check_init_from(args: argparse.Namespace) -> None:
+    """RomannetError (the check's own line) unless --init-from can start this run; nothing without it."""
+    import subprocess
+
+    from romannet.common.errors import RomannetError
+
+    if not getattr(args, "init_from", None):
+        return
+    if args.resume:
+        raise RomannetError("--init-from starts a new run from other weights, --resume continues this run's "
+                            "checkpoint: pass one of them")
+    done = subprocess.run(init_check_argv(args), capture_output=True, text=True, timeout=300)
+    if done.returncode != 0:
+        lines = [ln for ln in done.stderr.splitlines() if ln.strip()] or [f"exit code {done.returncode}"]
+        raise RomannetError(lines[-1].removeprefix("romannet models: error: "))
+    log.info("%s", done.stdout.strip())
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the fleet for parsed CLI arguments (romannet/cli.py); returns the exit code."""
     from romannet.common.keys import RunKeys
     from romannet.common.replay_client import ZenohReplayClient
     from romannet.common.zenoh_session import free_port, make_config, open_session, wait_for_liveliness
 
+    check_init_from(args)
     run_dir, cfg = prepare_run(args)
     ledger = ActorLedger.load(run_dir / "actors" / LEDGER_FILE)  # a fresh run has none yet
     if args.resume:

@@ -16,7 +16,13 @@ import numpy as np
 import pytest
 import torch
 
-from romannet.learner.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from romannet.common.config_learner import LearnerConfig
+from romannet.learner.checkpoint import (
+    latest_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+    start_from_weights,
+)
 
 TESTS = Path(__file__).resolve().parent
 
@@ -83,6 +89,38 @@ def test_checkpoint_files_are_safetensors_and_json_and_pruned(tmp_path):
     assert latest_checkpoint(tmp_path).name == "ckpt-000000003"
     save_checkpoint(t, tmp_path)  # the same update again (a shutdown right after a periodic checkpoint)
     assert latest_checkpoint(tmp_path).name == "ckpt-000000003"
+
+
+def test_default_cadence_is_every_100_updates_keeping_3(tmp_path):
+    """Frequent enough to evaluate a run while it trains; three kept, so an evaluation that started on one has
+    200 updates before it is pruned."""
+    assert (LearnerConfig().checkpoint_every_updates, LearnerConfig().keep_checkpoints) == (100, 3)
+    t = H.trainer()
+    for updates in (100, 200, 300, 400):
+        t.updates = updates
+        save_checkpoint(t, tmp_path)
+    assert sorted(p.name for p in (tmp_path / "checkpoints").glob("ckpt-*")) == [
+        "ckpt-000000200", "ckpt-000000300", "ckpt-000000400"]
+
+
+def test_start_from_weights_is_a_new_run_on_those_weights():
+    source = H.trainer(seed=1)
+    for b in _batches(2):
+        source.train_step(b)
+    used = H.trainer(seed=2, target_network=True)  # momentum, an update count and a moved exploration rate
+    used.train_step(_batches(3)[2])
+    start_from_weights(used, source.state_tensors())
+    fresh = H.trainer(seed=3, target_network=True)
+    start_from_weights(fresh, source.state_tensors())
+    for t in (used, fresh):
+        assert t.updates == 0 and not t.optimizer.state
+        assert t.exploration.state_dict() == H.trainer().exploration.state_dict()
+        for k, v in source.state_tensors().items():
+            assert torch.equal(t.model.state_dict()[k], v) and torch.equal(t.target.state_dict()[k], v), k
+    batch = _batches(4)[3]
+    used.train_step(batch)
+    fresh.train_step(batch)
+    _assert_same_state(used, fresh)
 
 
 def test_resume_refuses_another_model(tmp_path):
