@@ -85,6 +85,12 @@ def _eval_dir(path: Path, updates: int, completed: int, runs: int = 3, protocol:
     return path
 
 
+@pytest.fixture(autouse=True)
+def _cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """resolve_model_dir's copies go to the test's directory, not the user's cache."""
+    monkeypatch.setenv("ROMANNET_CACHE_DIR", str(tmp_path / "cache"))
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Trainer]:
     torch.set_num_threads(1)
@@ -155,6 +161,7 @@ def test_loading_gives_the_bf16_rounding_in_fp32_to_learner_actor_and_eval(run, 
     got = load_model_tensors(ckpt)
     assert all(torch.equal(got[k], expected[k]) for k in expected)
     assert resolve_model_dir(out)[0] == ckpt  # written once, reused
+    assert ckpt.is_relative_to(tmp_path / "cache")
 
 
 def test_eval_plans_a_package_with_the_proposed_resolve_checkpoint(run, tmp_path, monkeypatch):
