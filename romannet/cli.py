@@ -55,6 +55,10 @@ EXAMPLES = {
     "models": ("romannet models pack runs/clutter --eval runs/clutter/eval/clutter-frozen-20260101-120000 "
                "--out models/clutter\n  romannet models check models/clutter\n"
                "  romannet models check models/clutter --init --config configs/experiments/clutter.toml"),
+    "sweep": ("romannet sweep --config configs/experiments/stacking.toml --config "
+              "configs/experiments/stacking-baseline.toml --seeds 1 2 3 --max-actions 2500 --out sweeps/stack-abl\n"
+              "  romannet sweep --config configs/experiments/clutter.toml --seeds 1 2 --max-actions 2500 "
+              "--eval-objects 30 --eval-object-set novel --out sweeps/clutter"),
     "plot": "romannet plot runs/abl-baseline runs/abl-tpg runs/stack-h4 --labels baseline +TPG +TPG+LAE --out abl.png",
     "mcap": ("romannet mcap inspect runs/demo/episodes\n  romannet mcap play runs/demo/episodes/actor-0/ep000000.mcap "
              "--foxglove 8765\n  romannet mcap feed runs/demo/episodes --run-id offline-1 --connect "
@@ -180,6 +184,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_models(args: argparse.Namespace) -> int:
     from romannet.models import run
+
+    return run(args)
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from romannet.sweep.cli import run
 
     return run(args)
 
@@ -363,6 +373,13 @@ def build_parser() -> argparse.ArgumentParser:
     ck.add_argument("--init", action="store_true",
                     help="check DIR as an --init-from source for a run with --config/--set (default config)")
     _add_config_args(ck)
+
+    p = verb("sweep", "train every recipe (--config, repeatable) with every seed one run after another, evaluate "
+             "each frozen on the same scenes beside the oracle and random policies, and write the mean, min and "
+             "max over seeds to <out>/results.md/.json and curves.png; the same command resumes it", cmd_sweep)
+    from romannet.sweep.cli import add_arguments as add_sweep_arguments
+
+    add_sweep_arguments(p)
 
     p = verb("plot", "learning curves (action success rate and efficiency over training actions) of run "
              "directories into one PNG: one line per run, or per label shared by several runs (their mean "
