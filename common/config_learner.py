@@ -49,6 +49,10 @@ class LearnerConfig:
     # target R + gamma V moves with it, from ~4 to below a failed pick's 0 (docs/results.md).
     bootstrap_clip: bool = False
     target_sync_every_updates: int = 100  # copy online -> target every this many updates
+    # Take V(s_{t+1}) from the actor's next decision (it runs the same nets on s_{t+1} to act) when its weights
+    # are at most this many updates behind the learner's, instead of a forward pass here; older values are
+    # recomputed (learner.trainer.actor_value_usable). 0 = always compute here.
+    actor_value_max_age: int = 100
     # Clip the gradient's global L2 norm to this before each step; 0 = off (the paper's and VPG's setting). A
     # summed loss over a Gaussian label's support makes early gradients large: clipping lets a higher lr train
     # without diverging.
@@ -69,6 +73,10 @@ class LearnerConfig:
     # with it (learner/augment.py): the same pick at every orientation of the scene, so the rotation head
     # learns the angle relative to the object rather than the yaws the objects happened to have.
     augment_rotation: bool = False
+    # Forward + backward over a window of this many pixels around each executed pixel instead of the whole
+    # heightmap (learner/crop.py): 128 holds the label's support with the nets' receptive field around it, so
+    # the losses equal the whole image's, at a third of the cost at 224 px. 0 = the whole heightmap.
+    train_crop_px: int = 128
     # CPU numerics. "bf16": autocast to bfloat16 for the convolutions (fp32 master weights and loss); it pays
     # only where the CPU computes bf16 natively (AMX / AVX512-BF16), elsewhere it is emulated and several
     # times slower than fp32. "auto": bf16 on such CPUs (and on CUDA), fp32 elsewhere.
@@ -106,6 +114,8 @@ class LearnerConfig:
                 "must be in [0, 100] (0 = the support loss alone, 1 = the paper's weight on the executed pixel)")
         require(math.isfinite(self.max_grad_norm) and self.max_grad_norm >= 0, "learner.max_grad_norm",
                 self.max_grad_norm, "must be a non-negative number (0 = no clipping)")
+        require(0 <= self.actor_value_max_age <= 1_000_000, "learner.actor_value_max_age", self.actor_value_max_age,
+                "must be 0..1000000 updates (0 = V(s_t+1) always computed by the learner)")
         require(self.target_sync_every_updates >= 1, "learner.target_sync_every_updates",
                 self.target_sync_every_updates, "must be >= 1")
         require(0.0 <= self.rotation_loss_weight <= 100.0, "learner.rotation_loss_weight",
@@ -116,6 +126,10 @@ class LearnerConfig:
         require(self.train_rotation_on_success_only or self.rotation_failure_weight == 0.0,
                 "learner.rotation_failure_weight", self.rotation_failure_weight,
                 "must be 0 when learner.train_rotation_on_success_only is false (failures are then imitated)")
+        require(self.train_crop_px == 0 or (self.train_crop_px >= 32 and self.train_crop_px % 4 == 0),
+                "learner.train_crop_px", self.train_crop_px,
+                "must be 0 (the whole heightmap) or a multiple of 4 from 32 (the nets' stride; 128 holds their "
+                "receptive field around the label)")
         require(0 <= self.num_threads <= 1024, "learner.num_threads", self.num_threads,
                 "must be 0..1024 (0 = torch's default)")
         require(0 <= self.seed < 2**63, "learner.seed", self.seed, "must be a non-negative integer")

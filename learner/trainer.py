@@ -49,6 +49,7 @@ from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 
 from .augment import augment_yaws, rotated_transition
+from .crop import crop_origin
 from .targets import (
     bootstrap_value,
     clip_value,
@@ -103,6 +104,16 @@ def _fp32_heads(model: RoManNet) -> None:
             head.forward = types.MethodType(_fp32_head_forward, head)
 
 
+def actor_value_usable(t: TransitionMsg, updates: int, max_age: int) -> bool:
+    """Whether the actor's V(s_{t+1}) stands in for a forward pass: it was sent, and its weights are at most
+    max_age updates older than the learner's (0: never). A bootstrap from weights a little behind the online
+    net is what a target network does (and the actor acts on exactly that function); an older one is
+    recomputed, so replayed items do not keep the stale targets they were inserted with."""
+    if max_age <= 0 or t.next_value is None or t.next_value_version is None:
+        return False
+    return 0 <= updates - t.next_value_version <= max_age
+
+
 def batch_items(batch: SampleBatchMsg) -> list[BatchItem]:
     """(transition, is_weight, item_id) triples of a decoded sample batch."""
     items = []
@@ -142,6 +153,8 @@ class Trainer:
         self.exploration = ExplorationRate(self.exploration_cfg)
         self.updates = 0
         self.primitives = task_cfg.primitives
+        self.actor_values_used = 0  # V(s_{t+1}) taken from the actor's next decision
+        self.values_computed = 0  # V(s_{t+1}) computed here by a forward pass
 
     # ------------------------------------------------------------------------------------------ helpers
     def _autocast(self):
@@ -167,6 +180,16 @@ class Trainer:
         """V(s_{t+1}) per transition, 0 where it cannot matter (done, or R_tp <= 0 so eta = 0)."""
         values = [0.0] * len(transitions)
         need = [i for i, t in enumerate(transitions) if not t.done and t.reward > 0]
+        bounds = return_range(self.reward_cfg, self.cfg.gamma) if self.cfg.bootstrap_clip else None
+        from_actor = [i for i in need if actor_value_usable(transitions[i], self.updates,
+                                                            self.cfg.actor_value_max_age)]
+        for i in from_actor:
+            v = float(transitions[i].next_value)
+            values[i] = clip_value(v, bounds) if bounds is not None else v
+        self.actor_values_used += len(from_actor)
+        taken = set(from_actor)
+        need = [i for i in need if i not in taken]
+        self.values_computed += len(need)
         if not need:
             return values
         net_model = self.target if self.target is not None else self.model
@@ -184,7 +207,6 @@ class Trainer:
                     q, _ = net_model.nets[p](x)
                 for i, m in zip(idx, q.float().amax(dim=(1, 2)).tolist(), strict=True):
                     maxima[i][p] = m
-            bounds = return_range(self.reward_cfg, self.cfg.gamma) if self.cfg.bootstrap_clip else None
             for i in need:
                 t = transitions[i]
                 values[i] = bootstrap_value(maxima[i], t.holding_after, self.primitives, t.done)
@@ -253,20 +275,27 @@ class Trainer:
             phis = augment_yaws(self.seed, self.updates, p, len(ts))
             ts = [rotated_transition(t, phi) for t, phi in zip(ts, phis, strict=True)]
         h, w = ts[0].shape
-        labels, supports = [], []
+        crop = cfg.train_crop_px if 0 < cfg.train_crop_px < min(h, w) else 0
+        labels, supports, colors, depths, rows_l, cols_l = [], [], [], [], [], []
         for t, i in zip(ts, idx, strict=True):
             lab, sup = q_label((h, w), t.action.row, t.action.col, t.action.angle_rad, t.reward, v_next[i],
                                cfg.gamma, self.reward_cfg)
-            labels.append(lab)
-            supports.append(sup)
+            r0, c0 = crop_origin((h, w), t.action.row, t.action.col, crop) if crop else (0, 0)
+            win = (slice(r0, r0 + crop), slice(c0, c0 + crop)) if crop else (slice(None), slice(None))
+            labels.append(lab[win])
+            supports.append(sup[win])
+            colors.append(t.color_before[win])
+            depths.append(t.depth_before[win])
+            rows_l.append(t.action.row - r0)
+            cols_l.append(t.action.col - c0)
         label = torch.from_numpy(np.stack(labels)).to(self.device)
         support = torch.from_numpy(np.stack(supports)).to(self.device)
-        x = self._inputs([t.color_before for t in ts], [t.depth_before for t in ts])
+        x = self._inputs(colors, depths)
         with self._autocast():
             q, rot = self.model.nets[p](x)
         q, rot = q.float(), rot.float()
-        rows = torch.tensor([t.action.row for t in ts], device=self.device)
-        cols = torch.tensor([t.action.col for t in ts], device=self.device)
+        rows = torch.tensor(rows_l, device=self.device)
+        cols = torch.tensor(cols_l, device=self.device)
         ar = torch.arange(len(ts), device=self.device)
         q_exec = q[ar, rows, cols]
         rot_exec = rot[ar, :, rows, cols]  # (k, 2 * harmonics)
