@@ -28,6 +28,7 @@ import time
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -53,6 +54,20 @@ log = logging.getLogger(__name__)
 
 _PAUSE_POLL_S = 0.25  # how often a paused actor re-checks the spool and the stop event
 _QUIET_PAUSE_S = 5.0  # a full spool that drains within this long is not reported as a pause
+
+
+class Decision(NamedTuple):
+    """An action chosen for one observation, the maps it came from, and the weights and rate in force."""
+
+    action: Action
+    maps: PolicyMaps
+    version: int
+    rate: float
+
+    @property
+    def value(self) -> float:
+        """V of the observation: the largest Q over the nets that ran (those allowed in it)."""
+        return max(float(q.max()) for q in self.maps.q.values())
 
 
 @dataclass(frozen=True)
@@ -287,12 +302,15 @@ class ActorLoop:
             if recorder is not None:
                 recorder.write_observation(obs, time.time_ns())
             step = 0
+            decision: Decision | None = None  # taken for `obs` when the previous action's value was read
             while True:
                 if self.stop.is_set() or self.limits_reached() or not self.wait_for_spool_room():
                     done_reason = "max_actions" if self.limits_reached() else "stopped"
                     break
-                self.swap_policy()
-                primitive, result = self.act(obs, episode_id, step, rng, recorder)
+                if decision is None:
+                    self.swap_policy()
+                    decision = self.decision(obs, rng)
+                primitive, result, decision = self.act(obs, decision, episode_id, step, rng, recorder)
                 ep_actions += 1
                 ep_picks += int(primitive == "pick" and result.success)
                 obs, step = result.observation, step + 1
@@ -339,15 +357,26 @@ class ActorLoop:
         self.good_weights = self.loaded_weights
         return result
 
-    def act(self, obs: Observation, episode_id: str, step: int, rng: np.random.Generator,
-            recorder: EpisodeRecorder | None) -> tuple[str, StepResult]:
-        """Decide, execute, then spool, record and count one action; returns (primitive, result)."""
-        start_ns = time.time_ns()
+    def decision(self, obs: Observation, rng: np.random.Generator) -> Decision:
+        """The next action for `obs` with the weights and rate in force now."""
         action, maps = self.decide(obs, rng)
-        version, rate = self.stats.weights_version, self.stats.explore_rate
+        return Decision(action, maps, self.stats.weights_version, self.stats.explore_rate)
+
+    def act(self, obs: Observation, decision: Decision, episode_id: str, step: int, rng: np.random.Generator,
+            recorder: EpisodeRecorder | None) -> tuple[str, StepResult, Decision | None]:
+        """Execute a decision, take the next one (its Q maps give the transition's V(s_{t+1}), which the
+        learner then need not compute), then spool, record and count the action.
+
+        Returns (primitive, result, the decision for the next observation or None at the episode's end)."""
+        start_ns = time.time_ns()
+        action, maps, version, rate = decision
         q_ranges = recorder.write_q_maps(maps.q, start_ns) if recorder is not None else {}
         result = self.env.step(action)
         end_ns = max(time.time_ns(), start_ns)
+        following = None
+        if not result.done and not self.stop.is_set() and not self._last_action():
+            self.swap_policy()
+            following = self.decision(result.observation, rng)
         sim_seed = result.info.get("seed")
         msg = TransitionMsg(
             actor_id=self.acfg.actor_id, episode_id=episode_id, step=step, start_ns=start_ns, end_ns=end_ns,
@@ -358,7 +387,9 @@ class ActorLoop:
             done_reason=result.done_reason if result.done else "", holding_before=bool(obs.holding),
             holding_after=bool(result.observation.holding), policy_version=version, explore_rate=rate,
             initial_priority=self.acfg.priority_for(result.reward),
-            sim_seed=int(sim_seed) if isinstance(sim_seed, int) and sim_seed >= 0 else None)
+            sim_seed=int(sim_seed) if isinstance(sim_seed, int) and sim_seed >= 0 else None,
+            next_value=following.value if following is not None else None,
+            next_value_version=following.version if following is not None else None)
         data = encode_transition(msg)
         self.spool.put(data)  # durable before anything else: from here on it cannot be lost
         self.stats.record_action(action.primitive, result.success, version)
@@ -375,7 +406,11 @@ class ActorLoop:
             recorder.write_observation(result.observation, end_ns)
             recorder.write_step(data, extras, end_ns)  # flushes the step's chunk, observation included
         self.write_status()
-        return action.primitive, result
+        return action.primitive, result, following
+
+    def _last_action(self) -> bool:
+        """The action under way is the last this process may take (its max_actions)."""
+        return self.acfg.max_actions > 0 and self.stats.actions + 1 >= self.acfg.max_actions
 
 
 def run_actor(cfg: Config, run_dir: str | Path, env: Env, replay_client: ReplayClient,

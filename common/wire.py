@@ -17,6 +17,7 @@ import functools
 from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
 
+import numpy as np
 from google.protobuf import message as pb_message
 from google.protobuf.descriptor_pb2 import FileDescriptorProto, FileDescriptorSet
 
@@ -170,6 +171,8 @@ def _fill_transition(out: pb.Transition, msg: TransitionMsg) -> None:
         out.initial_priority = float(msg.initial_priority)
     if msg.sim_seed is not None:
         out.sim_seed = int(msg.sim_seed)
+    if msg.next_value is not None:
+        out.next_value, out.next_value_version = float(msg.next_value), int(msg.next_value_version)
 
 
 def encode_transition(msg: TransitionMsg) -> bytes:
@@ -207,17 +210,27 @@ def _transition_from_pb(t: pb.Transition, expected_shape: tuple[int, int] | None
     for name, decode_png in _PNGS:
         with _within(name):
             images[name] = decode_png(getattr(t, name))
+    return transition_msg(t, primitive, images["color_before_png"], images["depth_before_png"],
+                          images["color_after_png"], images["depth_after_png"])
+
+
+def transition_msg(t: pb.Transition, primitive: str, color_before: np.ndarray, depth_before: np.ndarray,
+                   color_after: np.ndarray, depth_after: np.ndarray) -> TransitionMsg:
+    """The one mapping from a checked protobuf Transition to the dataclass (the heightmaps decoded by the
+    caller: the replay server's validation passes placeholders, it never decodes pixels)."""
     a = t.action
+    has_next = t.HasField("next_value") and t.HasField("next_value_version")
     return TransitionMsg(
         actor_id=t.actor_id, episode_id=t.episode_id, step=t.step, start_ns=t.start_ns, end_ns=t.end_ns,
-        task=t.task, color_before=images["color_before_png"], depth_before=images["depth_before_png"],
-        color_after=images["color_after_png"], depth_after=images["depth_after_png"],
-        action=Action(primitive, a.row, a.col, a.angle_rad, a.q_value, a.explored),
+        task=t.task, color_before=color_before, depth_before=depth_before, color_after=color_after,
+        depth_after=depth_after, action=Action(primitive, a.row, a.col, a.angle_rad, a.q_value, a.explored),
         success=t.success, progress_before=t.progress_before, progress_after=t.progress_after,
         reward=t.reward, done=t.done, done_reason=t.done_reason, holding_before=t.holding_before,
         holding_after=t.holding_after, policy_version=t.policy_version, explore_rate=t.explore_rate,
         initial_priority=t.initial_priority if t.HasField("initial_priority") else None,
         sim_seed=t.sim_seed if t.HasField("sim_seed") else None,
+        next_value=t.next_value if has_next else None,
+        next_value_version=t.next_value_version if has_next else None,
     )
 
 

@@ -70,6 +70,10 @@ class TransitionMsg:
     explore_rate: float  # in [0, 1]
     initial_priority: float | None = None  # finite, >= 0; None: the buffer's choice
     sim_seed: int | None = None  # None on a real robot
+    # V(s_{t+1}) as the actor's next decision saw it (the largest Q of the nets allowed in s_{t+1}) and the
+    # weights version of that decision; None when no decision followed (episode end, stop) or not sent.
+    next_value: float | None = None
+    next_value_version: int | None = None
 
     def __post_init__(self) -> None:
         check_token("actor_id", self.actor_id)
@@ -102,6 +106,11 @@ class TransitionMsg:
             check_float("initial_priority", self.initial_priority, 0.0)
         if self.sim_seed is not None:
             check_int("sim_seed", self.sim_seed, 0, UINT64_MAX)
+        if (self.next_value is None) != (self.next_value_version is None):
+            raise ValueError("next_value and next_value_version come together or not at all")
+        if self.next_value is not None:
+            check_float("next_value", self.next_value)
+            check_int("next_value_version", self.next_value_version, 0, UINT64_MAX)
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -183,8 +183,9 @@ def _loop(trainer: Trainer, client: ReplayClient, publisher: WeightsPublisher, m
             save_checkpoint(trainer, metrics.run_dir)
             counters.checkpointed_at = stats.updates
             metrics.flush()
-        next_log_s = _maybe_log(next_log_s, opts, "update %d: loss %.4g, explore %.3f, replay %d",
-                                stats.updates, stats.loss, stats.exploration_rate, batch.buffer_size)
+        next_log_s = _maybe_log(next_log_s, opts, "update %d: loss %.4g, explore %.3f, replay %d, V(s') from "
+                                "the actors %d, computed %d", stats.updates, stats.loss, stats.exploration_rate,
+                                batch.buffer_size, trainer.actor_values_used, trainer.values_computed)
 
 
 def _sample(client: ReplayClient, batch_size: int, opts: ServiceOptions,

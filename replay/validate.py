@@ -22,7 +22,6 @@ import numpy as np
 
 from romannet.common import romannet_pb2 as pb
 from romannet.common import wire
-from romannet.common.action import Action
 from romannet.common.errors import DecodeError
 from romannet.common.imagecodec import check_png_chunks, read_png_header
 
@@ -75,17 +74,7 @@ def check_transition(data: bytes, expected_shape: tuple[int, int] | None = None,
             check_png_chunks(png)
         h, w = read_png_header(pngs["color_before_png"])[:2]
         color, depth = _placeholders(h, w)
-        a = t.action
-        return wire.TransitionMsg(
-            actor_id=t.actor_id, episode_id=t.episode_id, step=t.step, start_ns=t.start_ns, end_ns=t.end_ns,
-            task=t.task, color_before=color, depth_before=depth, color_after=color, depth_after=depth,
-            action=Action(primitive, a.row, a.col, a.angle_rad, a.q_value, a.explored),
-            success=t.success, progress_before=t.progress_before, progress_after=t.progress_after,
-            reward=t.reward, done=t.done, done_reason=t.done_reason, holding_before=t.holding_before,
-            holding_after=t.holding_after, policy_version=t.policy_version, explore_rate=t.explore_rate,
-            initial_priority=t.initial_priority if t.HasField("initial_priority") else None,
-            sim_seed=t.sim_seed if t.HasField("sim_seed") else None,
-        )
+        return wire.transition_msg(t, primitive, color, depth, color, depth)
     except DecodeError as exc:
         raise DecodeError(f"invalid Transition: {exc}") from exc
     except Exception as exc:  # the contract, as for wire's decoders: DecodeError and nothing else
