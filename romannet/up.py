@@ -123,6 +123,23 @@ def actor_shares(max_actions: int, done: int, actors: int) -> list[int]:
     return [max(1, share) for share in split_actions(max(0, max_actions - done), actors)]
 
 
+def thread_plan(cores: int, actors: int) -> dict[str, int]:
+    """Torch threads per child so that the fleet's compute threads add up to the machine's cores.
+
+    The learner and the actors each default to one thread per core; on one machine they then oversubscribe
+    it, and OpenMP's spinning threads wait on each other at every convolution's barrier: on 2 cores a
+    learner step and an actor decision, side by side, took 10.8 s and 1.0 s with 2 threads each and 2.2 s
+    and 0.64 s with 1 thread each (docs/benchmarks.md, "Sharing the cores"). Each actor gets an equal share,
+    the learner the rest, every child at least 1; the replay server computes little and gets 1."""
+    actor_threads = max(1, cores // (actors + 1))
+    return {"replay": 1, "actor": actor_threads, "learner": max(1, cores - actors * actor_threads)}
+
+
+def _threads_env(n: int) -> dict[str, str]:
+    # torch reads OMP_NUM_THREADS for its default; a config's explicit num_threads still wins.
+    return {"OMP_NUM_THREADS": str(n)}
+
+
 def build_specs(run_dir: Path, cfg: Config, args: argparse.Namespace, replay_ep: str, learner_ep: str,
                 ledger: ActorLedger) -> list[ChildSpec]:
     """The replay server, the learner and the actors as supervised children.
@@ -149,12 +166,13 @@ def build_specs(run_dir: Path, cfg: Config, args: argparse.Namespace, replay_ep:
         return [*base, "learner", "--config", config, "--run-dir", str(run_dir), "--listen", learner_ep,
                 "--connect", replay_ep, *resume, *offline, *init]
 
+    threads = thread_plan(os.cpu_count() or 1, args.actors)
     specs = [
         ChildSpec("replay", [*base, "replay", "--config", config, "--dir", str(run_dir / "replay"),
                              "--listen", replay_ep], stop_rank=REPLAY_RANK, restart="always",
-                  stop_timeout_s=stop_s, log_path=logs / "replay.log"),
+                  stop_timeout_s=stop_s, log_path=logs / "replay.log", env=_threads_env(threads["replay"])),
         ChildSpec("learner", learner_argv, stop_rank=LEARNER_RANK, restart="always", stop_timeout_s=stop_s,
-                  log_path=logs / "learner.log"),
+                  log_path=logs / "learner.log", env=_threads_env(threads["learner"])),
     ]
     for i, share in enumerate(actor_shares(args.max_actions, ledger.start_total(), args.actors)):
         actor_id = f"actor-{i}"
@@ -167,7 +185,8 @@ def build_specs(run_dir: Path, cfg: Config, args: argparse.Namespace, replay_ep:
             return argv
 
         specs.append(ChildSpec(actor_id, actor_argv, stop_rank=ACTOR_RANK, restart="on-failure",
-                               stop_timeout_s=stop_s, log_path=logs / f"{actor_id}.log"))
+                               stop_timeout_s=stop_s, log_path=logs / f"{actor_id}.log",
+                               env=_threads_env(threads["actor"])))
     return specs
 
 
