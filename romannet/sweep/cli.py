@@ -199,12 +199,15 @@ class Sweep:
         return Pace(actions_left=total - done, actions_gained=sum(self.done.values()) - sum(self.at_start.values()),
                     training_s=self.training_s + extra_training_s, evals_left=evals_left, eval_s=tuple(self.eval_s))
 
-    def train(self) -> int | None:
-        """Every run to --max-actions, one after another; an exit code to stop with, or None when all are done."""
+    def train(self, only: str | None = None) -> int | None:
+        """Every run (or the one named `only`) to --max-actions, one after another; an exit code to stop with,
+        or None when all are done."""
         from .execute import run_child, training_line
         from .state import RunState, run_actions, run_state
 
         for i, job in enumerate(self.jobs, 1):
+            if only is not None and job.name != only:
+                continue
             if self.stops.count:
                 return INTERRUPTED
             state = run_state(job.run_dir, self.plan.max_actions)
@@ -243,9 +246,9 @@ class Sweep:
                             self.plan.max_actions, code, log_path)
         return None
 
-    def evaluate(self) -> int | None:
-        """Each run's newest checkpoint and each scripted policy, frozen on the same scenes; an exit code to
-        stop with, or None when every evaluation is finished."""
+    def evaluate(self, only: str | None = None) -> int | None:
+        """Each run's newest checkpoint and each scripted policy (or the one named `only`), frozen on the same
+        scenes; an exit code to stop with, or None when every evaluation is finished."""
         from .execute import eval_line, run_child
         from .state import finished_report
 
@@ -253,6 +256,8 @@ class Sweep:
                  **{p: self.plan.policy_argv(p, self.plan.out / "eval" / p) for p in self.plan.policies}}
         dirs = self.eval_dirs()
         for k, (name, argv) in enumerate(argvs.items(), 1):
+            if only is not None and name != only:
+                continue
             if self.stops.count:
                 return INTERRUPTED
             if finished_report(dirs[name]) is not None:
@@ -328,13 +333,19 @@ def run(args: argparse.Namespace) -> int:
         h.addFilter(clear)
     stops = StopRequests()
     try:
-        log.info("sweep in %s: %d variant(s) x %d seed(s) = %d runs of %d actions, then %d evaluation(s) "
-                 "(%s)", plan.out, len(plan.variants), len(plan.seeds), len(plan.jobs), plan.max_actions,
-                 len(plan.jobs) + len(plan.policies), json.dumps(plan.eval.as_dict()))
+        log.info("sweep in %s: %d variant(s) x %d seed(s) = %d runs of %d actions, each evaluated once "
+                 "trained, then %d scripted row(s) (%s)", plan.out, len(plan.variants), len(plan.seeds),
+                 len(plan.jobs), plan.max_actions, len(plan.policies), json.dumps(plan.eval.as_dict()))
         sweep = Sweep(plan, stops, display)
-        code = sweep.train()
+        code = None
+        for job in plan.jobs:  # each run evaluated as soon as it is trained: results arrive run by run
+            code = sweep.train(only=job.name)
+            if code is None:
+                code = sweep.evaluate(only=job.name)
+            if code is not None:
+                break
         if code is None:
-            code = sweep.evaluate()
+            code = sweep.evaluate()  # the scripted rows
         if code is None:
             paths = sweep.tabulate()
             log.info("sweep done: %s", ", ".join(str(p) for p in paths.values()))
