@@ -30,6 +30,7 @@ from mcap.reader import make_reader
 
 from romannet.common.config import load_config
 from romannet.replay.store import ReplayStore
+from romannet.up import thread_plan
 
 SETS = ["model.channels=4", "model.residual_blocks=1", "model.num_threads=1", "learner.num_threads=1",
         'learner.precision="fp32"', "learner.max_grad_norm=10", "learner.batch_size=2", "learner.min_replay_size=4",
@@ -337,3 +338,17 @@ def test_killed_actor_is_restarted_with_the_rest_of_its_share(tmp_path: Path, up
         if not finished:
             unfinished.append(path.name)
     assert len(unfinished) <= 1, unfinished  # only the episode under way at the kill
+
+
+@pytest.mark.parametrize("cores,actors,expected", [
+    (2, 1, {"replay": 1, "actor": 1, "learner": 1}),
+    (2, 2, {"replay": 1, "actor": 1, "learner": 1}),
+    (16, 1, {"replay": 1, "actor": 8, "learner": 8}),
+    (16, 3, {"replay": 1, "actor": 4, "learner": 4}),
+    (1, 1, {"replay": 1, "actor": 1, "learner": 1}),
+])
+def test_thread_plan_shares_the_cores_between_learner_and_actors(cores, actors, expected):
+    plan = thread_plan(cores, actors)
+    assert plan == expected
+    if cores >= actors + 1:  # room for everyone: the compute threads never exceed the cores
+        assert plan["learner"] + actors * plan["actor"] <= cores
