@@ -1,13 +1,20 @@
 """Scripted oracle policies that read the simulator state (object poses), one per task.
 
-Used by tests and as a sanity baseline; they return the same `Action` a learned policy would (a heightmap
-pixel and an angle), so everything downstream is exercised. Frames as in common.action: angle from the
-x (column) axis toward the y (row) axis; for pick/place the finger-closing axis.
+Used by tests and as the simulator's ceiling (`romannet eval --policy oracle`); they return the same
+`Action` a learned policy would (a heightmap pixel and an angle), so everything downstream is exercised.
+Frames as in common.action: angle from the x (column) axis toward the y (row) axis; for pick/place the
+finger-closing axis.
+
+A clutter grasp is judged as the hand would meet it: where the open fingers (sim.finger_travel_m from the
+centre) and the hand come down on the depth heightmap, and whether the pads then close on the object's
+material (rays through the simulator's geometry). Counting neighbours within a radius instead pushed in
+dense scenes where a grasp along the free axis was there, and half of the 30-block runs ended on failures.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pybullet as p
@@ -18,11 +25,24 @@ from .env import SimEnv
 from .scene import wrap_half_pi
 
 GRASP_WIDTH_MARGIN_M = 0.01  # an object this much narrower than the full opening still fits between the fingers
-CROWDED_GAP_M = 0.025  # a neighbour closer than this (surface to surface, roughly) blocks the fingers
 # The Panda's fingers squeeze with their lowest centimetre: there must be material at these heights above
 # the fingertips (an arch grasped over its hole has material only higher up, and slips: measured).
 PAD_HEIGHTS_M = (0.003, 0.008)
 FREE_FLOOR_M = 0.01  # a push starts where the heightmap is below this (else it rides over an object)
+# Where an open finger comes down, from the pick's centre: from the inner face at the finger travel, this
+# far outward along the closing axis and this far either side across it (the Panda finger's lower part).
+FINGER_OUTWARD_M = 0.02
+FINGER_HALF_WIDTH_M = 0.012
+# The hand above the fingers: 21 cm along the closing axis, 7 cm across, its underside this far above the
+# fingertips (the env slows the descent over it; an object under it stops the hand).
+HAND_HALF_LENGTH_M = 0.105
+HAND_HALF_WIDTH_M = 0.035
+HAND_ABOVE_TIPS_M = 0.045
+CLEAR_M = 0.003  # the fingers reach their grasp height when nothing within their footprint is higher than this above it
+EXTRA_ANGLES_RAD = (math.pi / 4, -math.pi / 4)  # tried after the footprint's two axes (irregular or round objects)
+TOP_RAY_STEP_M = 0.004  # spacing of the rays that find an object's top from above
+POINT_MIN_DISTANCE_M = 0.005
+CROWD_RADIUS_M = 0.12  # a body with no other body's centre this close gains nothing from a push
 
 
 def _footprint(env: SimEnv, body: int) -> tuple[float, float, float, float]:
@@ -70,35 +90,109 @@ def _nearest_gap(env: SimEnv, body: int, bodies: list[int]) -> tuple[float, np.n
     return best, best_pos
 
 
-def _solid_between_fingers(env: SimEnv, body: int, angle_rad: float) -> bool:
-    """Would fingers closing along angle_rad over the body's centre squeeze material of the body?
+def _across_body(env: SimEnv, body: int, xy: np.ndarray, angle_rad: float, z_tip: float) -> float | None:
+    """Width (m) of body along the closing axis at the pads' heights when the fingertips are at z_tip, if
+    fingers closing there over xy would squeeze material of the body at every pad height; else None.
 
-    Rays along the closing axis, from just outside the body toward its centre, at the pads' height when the
-    fingertips are pick_depth_m below the top: an arch grasped across its thickness over the middle closes
-    on its hole (both rays miss), across its span on its legs (both hit).
+    Rays along the closing axis, from just outside the body toward xy: an arch grasped across its thickness
+    over the middle closes on its hole (the rays miss), across its span on its legs (they hit); a neighbour
+    in between is hit first (the finger would close on it).
     """
-    pos = env.scene.pose(body)[0]
-    z_tip = max(env.scene.top_z(body) - env.sim.pick_depth_m, env.sim.fingertip_clearance_m)
     reach = float(np.linalg.norm(env.scene.local_half_extents_m[body])) + 0.01
     d = np.array([math.cos(angle_rad), math.sin(angle_rad), 0.0])
     starts, ends = [], []
     for dz in PAD_HEIGHTS_M:
-        centre = np.array([pos[0], pos[1], z_tip + dz])
+        centre = np.array([xy[0], xy[1], z_tip + dz])
         starts += [(centre - reach * d).tolist(), (centre + reach * d).tolist()]
         ends += [centre.tolist(), centre.tolist()]
     hits = p.rayTestBatch(starts, ends, physicsClientId=env.scene.client)
-    return all(h[0] == body for h in hits)
+    if not all(h[0] == body for h in hits):
+        return None
+    points = np.array([h[3] for h in hits])
+    return float(max(np.linalg.norm(points[0] - points[1]), np.linalg.norm(points[2] - points[3])))
 
 
-def _grasp_angle(env: SimEnv, body: int) -> float | None:
-    """Closing angle for a top-down grasp of body: across its narrow side, else across its wide side when
-    that fits the gripper and the narrow one would close on nothing; None if neither does."""
-    narrow, angle, wide, wide_angle = _footprint(env, body)
-    max_width = 2 * env.sim.finger_travel_m - GRASP_WIDTH_MARGIN_M
-    for width, a in ((narrow, angle), (wide, wide_angle)):
-        if width <= max_width and _solid_between_fingers(env, body, a):
-            return wrap_half_pi(a)
-    return wrap_half_pi(angle) if narrow <= max_width else None
+def _zone_max(env: SimEnv, xy: np.ndarray, angle_rad: float, along_m: tuple[float, float],
+              half_width_m: float) -> float:
+    """Highest point of the depth heightmap (m above the table) in a rectangle: from along_m[0] to along_m[1]
+    from xy along angle_rad, half_width_m either side of that line (the part inside the workspace)."""
+    ws, res = env.ws, env.ws.resolution_m
+    d, n = np.array([math.cos(angle_rad), math.sin(angle_rad)]), np.array([-math.sin(angle_rad), math.cos(angle_rad)])
+    s = np.arange(along_m[0], along_m[1] + 1e-9, res / 2)
+    t = np.arange(-half_width_m, half_width_m + 1e-9, res / 2)
+    pts = xy + s[:, None, None] * d + t[None, :, None] * n
+    cols = np.floor((pts[..., 0] - ws.x_min_m) / res).astype(int).ravel()
+    rows = np.floor((pts[..., 1] - ws.y_min_m) / res).astype(int).ravel()
+    hm = env.obs.depth_hm
+    inside = (rows >= 0) & (rows < hm.shape[0]) & (cols >= 0) & (cols < hm.shape[1])
+    return float(hm[rows[inside], cols[inside]].max()) if inside.any() else 0.0
+
+
+@dataclass(frozen=True)
+class Grasp:
+    """A top-down pick of one body: where, along which closing axis, and how the fingers get down."""
+
+    body: int
+    xy: np.ndarray
+    angle_rad: float
+    clear: bool  # the fingers and the hand reach the grasp height without landing on anything
+
+
+def _grasp_points(env: SimEnv, body: int) -> list[np.ndarray]:
+    """Where to centre a grasp of body (x, y), in order: the middle of its bounding box, its origin, the
+    middle of its top as seen from above (a ring's or an L's box middle is a hole, a URDF's origin may lie
+    off the object). Points closer than POINT_MIN_DISTANCE_M to an earlier one are dropped."""
+    client = env.scene.client
+    lo, hi = (np.array(v) for v in p.getAABB(body, physicsClientId=client))
+    points = [(lo[:2] + hi[:2]) / 2, env.scene.pose(body)[0][:2]]
+    xs = np.arange(lo[0], hi[0], TOP_RAY_STEP_M)
+    ys = np.arange(lo[1], hi[1], TOP_RAY_STEP_M)
+    grid = np.array([(x, y) for x in xs for y in ys])
+    if len(grid):
+        hits = p.rayTestBatch([(x, y, hi[2] + 0.05) for x, y in grid], [(x, y, lo[2] - 0.01) for x, y in grid],
+                              physicsClientId=client)
+        on_top = np.array([h[3] for h in hits if h[0] == body]).reshape(-1, 3)
+        if len(on_top):
+            points.append(on_top[:, :2].mean(axis=0))
+    kept: list[np.ndarray] = []
+    for pt in points:
+        if all(np.linalg.norm(pt - q) >= POINT_MIN_DISTANCE_M for q in kept):
+            kept.append(np.asarray(pt, dtype=np.float64))
+    return kept
+
+
+def _grasp_angles(env: SimEnv, body: int) -> list[float]:
+    """Closing axes to try: across the narrow side of the footprint, the wide side, then the diagonals."""
+    _, narrow_angle, _, wide_angle = _footprint(env, body)
+    angles: list[float] = []
+    for a in (narrow_angle, wide_angle, *(narrow_angle + e for e in EXTRA_ANGLES_RAD)):
+        a = wrap_half_pi(a)
+        if all(abs(wrap_half_pi(a - b)) > 0.1 for b in angles):
+            angles.append(a)
+    return angles
+
+
+def _grasps(env: SimEnv, body: int) -> list[Grasp]:
+    """The body's feasible grasps, clear ones first, each in the order of _grasp_points then _grasp_angles;
+    feasible when the object fits the opening and the pads close on its material at the height where the
+    fingers stop (their grasp height, or higher where they land on a neighbour)."""
+    travel, ws = env.sim.finger_travel_m, env.ws
+    grasps = []
+    for xy in _grasp_points(env, body):
+        px = _pixel(env, xy)
+        if px is None:
+            continue
+        top = float(env.obs.depth_hm[px]) + ws.z_min_m  # the height the env reads at this pixel
+        z_grasp = max(top - env.sim.pick_depth_m, env.sim.fingertip_clearance_m + ws.z_min_m)
+        for a in _grasp_angles(env, body):
+            fingers = max(_zone_max(env, xy, a, (travel, travel + FINGER_OUTWARD_M), FINGER_HALF_WIDTH_M),
+                          _zone_max(env, xy, a + math.pi, (travel, travel + FINGER_OUTWARD_M), FINGER_HALF_WIDTH_M))
+            hand = _zone_max(env, xy, a, (-HAND_HALF_LENGTH_M, HAND_HALF_LENGTH_M), HAND_HALF_WIDTH_M)
+            z_tip = max(z_grasp, fingers + ws.z_min_m, hand + ws.z_min_m - HAND_ABOVE_TIPS_M)
+            width = _across_body(env, body, xy, a, z_tip)
+            if width is not None and width <= 2 * travel - GRASP_WIDTH_MARGIN_M:
+                grasps.append(Grasp(body, xy, a, clear=z_tip <= z_grasp + CLEAR_M))
+    return sorted(grasps, key=lambda g: not g.clear)  # a stable sort
 
 
 def _push_actions(env: SimEnv, body: int, bodies: list[int]) -> list[Action]:
@@ -126,25 +220,31 @@ def _push_actions(env: SimEnv, body: int, bodies: list[int]) -> list[Action]:
 
 
 def clutter_action(env: SimEnv) -> Action:
-    """Pick the most isolated graspable object; if every object is crowded, push one out of the crowd."""
+    """Pick an object the fingers reach around unhindered, the highest first (nothing lies on it), then the
+    most isolated; if there is none, push a crowded one out of its crowd; if no push starts on free floor,
+    a grasp whose fingers land on a neighbour; if nothing is feasible, a grasp at the object's middle
+    anyway. After failures, the next candidate: the same action would fail again (e.g. a wrist angle the
+    arm cannot reach there, a push whose start it cannot reach)."""
     bodies = [b for b in env.scene.objects if env.scene.in_workspace(b)]
     if not bodies:
         return _action(env, "pick", np.array([0.5, 0.0]), 0.0)
-    # Highest first (it cannot be buried), then the most isolated.
     ranked = sorted(bodies, key=lambda b: (-round(env.scene.top_z(b), 2), -_nearest_gap(env, b, bodies)[0]))
-    for body in ranked:
-        angle = _grasp_angle(env, body)
-        gap, _ = _nearest_gap(env, body, bodies)
-        clear = gap - max(env.scene.local_half_extents_m[body]) > CROWDED_GAP_M + 0.03
-        if angle is not None and (clear or "push" not in env.primitives):
-            return _action(env, "pick", env.scene.pose(body)[0][:2], angle)
-    # Every object is crowded: push one out of its crowd. After failures, the next candidate: the same push
-    # would fail again (e.g. a start the arm cannot reach).
-    pushes = [a for body in ranked for a in _push_actions(env, body, bodies)]
-    if pushes:
-        return pushes[env.consecutive_failures % len(pushes)]
-    body = ranked[0]
-    return _action(env, "pick", env.scene.pose(body)[0][:2], _grasp_angle(env, body) or 0.0)
+    grasps = [g for body in ranked for g in _grasps(env, body)]
+    clear = [g for g in grasps if g.clear]
+    crowded = [b for b in ranked if _nearest_gap(env, b, bodies)[0] < CROWD_RADIUS_M]
+    pushes = [a for body in crowded for a in _push_actions(env, body, bodies)] if "push" in env.primitives else []
+    k = env.consecutive_failures
+    if clear:
+        g = clear[k % len(clear)]
+    elif pushes:
+        return pushes[k % len(pushes)]
+    elif grasps:
+        g = grasps[k % len(grasps)]
+    else:
+        blind = [Grasp(b, xy, a, clear=False) for b in ranked for xy in _grasp_points(env, b)
+                 for a in _grasp_angles(env, b)]
+        g = blind[k % len(blind)]
+    return _action(env, "pick", g.xy, g.angle_rad)
 
 
 def stacking_action(env: SimEnv) -> Action:
