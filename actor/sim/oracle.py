@@ -234,8 +234,8 @@ def clutter_action(env: SimEnv) -> Action:
     crowded = [b for b in ranked if _nearest_gap(env, b, bodies)[0] < CROWD_RADIUS_M]
     pushes = [a for body in crowded for a in _push_actions(env, body, bodies)] if "push" in env.primitives else []
     k = env.consecutive_failures
-    if clear:
-        g = clear[k % len(clear)]
+    if clear:  # after the clear grasps failed, the others (near its base the arm reaches some wrist angles only)
+        g = (clear + [g for g in grasps if not g.clear])[k % len(grasps)]
     elif pushes:
         return pushes[k % len(pushes)]
     elif grasps:
