@@ -138,9 +138,10 @@ def test_each_seed_of_an_arrangement_places_the_case_a_little_differently():
 
 
 def test_oracle_pushes_a_packed_arrangement_apart_first():
-    # Every object of a packed case is crowded except the isolated one: once that is picked the oracle must
-    # push (its push path read the heightmap through a SimEnv method that a refactor had removed).
-    case = str(default_cases()[0])
+    # A 2x2 block of cubes leaves no room for the fingers: once the isolated object is picked the oracle must
+    # push (its push path read the heightmap through a SimEnv method that a refactor had removed). A row of
+    # cubes (case_01) is picked across without pushing.
+    case = str(next(p for p in default_cases() if p.stem.startswith("case_02")))
     sim = SimConfig(case_file=case, settle_steps=120, case_jitter_m=0.0, case_jitter_deg=0.0, max_steps=4)
     with SimEnv(task=TaskConfig(kind="arrangement"), sim=sim) as env:
         env.reset(0)
