@@ -91,7 +91,12 @@ def _checkpoint_interval(run_dir: Path) -> str:
 
 
 def resolve_checkpoint(path: Path) -> tuple[Path, Path]:
-    """(checkpoint directory, run directory) for a run directory or a checkpoint directory."""
+    """(checkpoint directory, run directory) for a run directory, a checkpoint directory or a model package
+    (models/<experiment>/: a checkpoint-like fp32 copy of its weights, the package standing for the run)."""
+    if (path / "model.json").is_file():
+        from romannet.models import resolve_model_dir
+
+        return resolve_model_dir(path)[0], path
     if (path / "tensors.safetensors").is_file():
         return path, path.parent.parent
     from romannet.learner.checkpoint import latest_checkpoint
