@@ -175,7 +175,7 @@ def stack_height_from_poses(scene: Scene, cube_size_m: float, exclude: int | Non
     training episodes as "done" (docs/results-archive.md). exclude: a body to ignore (the cube the env knows is held).
     A cube counts while any of it is over the workspace (its centre within half a cube of the square), where
     the heightmap sees it: the reward measures stacks there (common.stack), and counting centres only left
-    stacks built at the square's edge rewarded by every place but never "done" (docs/results-archive.md, 2026-12-03).
+    stacks built at the square's edge rewarded by every place but never "done" (docs/results-archive.md).
     """
     half, z0 = 0.5 * cube_size_m, scene.ws.z_min_m
     # (bottom, top, xy) of each body, read once; sorted from the lowest up, so a supporting cube has its
