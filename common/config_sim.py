@@ -18,6 +18,25 @@ OBJECT_SETS = ("blocks", "cubes", "novel")
 
 
 @dataclass(frozen=True)
+class HandSpec:
+    """What a simulated parallel gripper's fingers can do; the finger links and pads are the Panda's."""
+
+    travel_m: float  # per finger, closed to fully open
+    force_n: float  # squeezing force of each finger
+    speed_mps: float  # top speed of each finger
+
+
+# "panda": the Panda URDF's travel (an 8 cm opening). Without a speed limit the position-controlled fingers
+# closed at up to 0.96 m/s and threw an object hit with an edge; a real gripper's fingers move at cm/s.
+# "rg2": the paper's and VPG's simulated gripper, by the OnRobot RG2 data sheet: 0-110 mm stroke, up to
+# 40 N gripping force, up to 127 mm/s closing speed (both fingers together).
+HANDS = {
+    "panda": HandSpec(travel_m=0.04, force_n=40.0, speed_mps=0.1),
+    "rg2": HandSpec(travel_m=0.055, force_n=40.0, speed_mps=0.0635),
+}
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """The simulated scene, robot and primitives (PyBullet, DIRECT mode, one client per environment)."""
 
@@ -35,15 +54,13 @@ class SimConfig:
     settle_steps: int = 240  # physics steps after spawning, so the scene is at rest before the first image
     # --- robot
     robot: Literal["arm", "gripper"] = "arm"  # "gripper": a floating Panda hand moved by a constraint (faster)
+    # The fingers' travel, force and speed (HANDS): "panda" (8 cm opening) or "rg2" (11 cm, the paper's).
+    hand: Literal["panda", "rg2"] = "panda"
     finger_friction: float = 1.5  # lateral friction of the finger pads (a 5 cm cube must not slip)
-    finger_force_n: float = 40.0  # closing force per finger
-    # Top speed of each finger (m/s). Without a limit the position-controlled fingers closed at up to
-    # 0.96 m/s and a pick landing on an object's edge threw it (1-2.4 m/s, measured); a real parallel
-    # gripper moves its fingers at centimetres per second.
-    finger_speed_mps: float = 0.1
-    # Travel of each finger from closed to fully open (m): the Panda's 0.04 opens 8 cm; 0.055 opens 11 cm
-    # like the paper's RG2 gripper (0-110 mm stroke).
-    finger_travel_m: float = 0.04
+    # Unset (None): the hand's own value (HANDS); set, it overrides the hand's.
+    finger_force_n: float | None = None  # squeezing force of each finger (N)
+    finger_speed_mps: float | None = None  # top speed of each finger (m/s)
+    finger_travel_m: float | None = None  # travel of each finger from closed to fully open (m)
     # --- physics
     time_step_s: float = 1.0 / 240.0
     substeps: int = 0  # PyBullet numSubSteps (0 = none); raise for stiffer contacts at a cost in speed
@@ -86,6 +103,12 @@ class SimConfig:
         require(0.0 <= self.drop_height_m <= 0.5, "sim.drop_height_m", self.drop_height_m, "must be 0..0.5 m")
         require(0 <= self.settle_steps <= 5000, "sim.settle_steps", self.settle_steps, "must be 0..5000")
         require(self.robot in ("arm", "gripper"), "sim.robot", self.robot, "must be 'arm' or 'gripper'")
+        require(self.hand in HANDS, "sim.hand", self.hand, f"must be one of {', '.join(HANDS)}")
+        spec = HANDS[self.hand]
+        for name, own in (("finger_force_n", spec.force_n), ("finger_speed_mps", spec.speed_mps),
+                          ("finger_travel_m", spec.travel_m)):
+            if getattr(self, name) is None:  # resolved once, so every reader sees a number
+                object.__setattr__(self, name, own)
         require(0.1 <= self.finger_friction <= 10.0, "sim.finger_friction", self.finger_friction,
                 "must be 0.1..10")
         require(1.0 <= self.finger_force_n <= 200.0, "sim.finger_force_n", self.finger_force_n,
@@ -93,7 +116,7 @@ class SimConfig:
         require(0.01 <= self.finger_speed_mps <= 1.0, "sim.finger_speed_mps", self.finger_speed_mps,
                 "must be 0.01..1 m/s per finger")
         require(0.02 <= self.finger_travel_m <= 0.06, "sim.finger_travel_m", self.finger_travel_m,
-                "must be 0.02..0.06 m per finger (the Panda: 0.04, an 8 cm opening; an RG2-like 11 cm: 0.055)")
+                "must be 0.02..0.06 m per finger (the Panda: 0.04, an 8 cm opening; the RG2: 0.055, 11 cm)")
         require(1e-4 <= self.time_step_s <= 0.02, "sim.time_step_s", self.time_step_s,
                 "must be 1e-4..0.02 s (PyBullet's default is 1/240)")
         require(0 <= self.substeps <= 20, "sim.substeps", self.substeps, "must be 0..20")

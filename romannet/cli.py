@@ -32,6 +32,7 @@ EXAMPLES = {
               "  romannet bench sim --json --actions 10 --robots arm,gripper\n"
               "  romannet bench learner --json --batch-sizes 1,4,8 --repeats 10\n"
               "  romannet bench system --json --actions 30\n"
+              "  romannet bench pick-geometry --hands panda,rg2 --cube-sizes 0.05,0.04\n"
               "  sudo romannet bench faults --json   # network namespaces: root"),
     "sim": "romannet sim snapshot --task stacking --seed 3 --out snapshot.png --action pick:112:90:30",
     "replay": "romannet replay --config configs/default.toml --dir runs/default/replay --listen tcp/127.0.0.1:7447",
@@ -115,6 +116,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from romannet.bench.system import run_system_benchmark
 
         result = run_system_benchmark(actions_per_actor=args.actions, seed=args.seed, **_repeats(args))
+    elif args.what == "pick-geometry":
+        from romannet.bench.pick_geometry import markdown, run_pick_geometry_benchmark
+
+        hands = tuple(h.strip() for h in args.hands.split(",") if h.strip())
+        sizes = tuple(float(c) for c in args.cube_sizes.split(",") if c.strip())
+        robot = args.robots.split(",")[-1].strip()
+        result = run_pick_geometry_benchmark(hands=hands, cube_sizes_m=sizes, robot=robot, seed=args.seed)
+        result["markdown"] = markdown(result)
     elif args.what == "faults":
         from romannet.bench.faults import run_fault_scenario_checked
 
@@ -257,13 +266,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p)
 
     p = verb("bench", "run a benchmark and print one JSON object (results go in docs/benchmarks.md)", cmd_bench)
-    p.add_argument("what", choices=["inference", "replay", "sim", "learner", "system", "faults"],
+    p.add_argument("what", choices=["inference", "replay", "sim", "learner", "system", "pick-geometry", "faults"],
                    help="inference: the actor's decision latency vs baselines; "
                         "replay: durable inserts/s, sample latency, recovery time over loopback Zenoh; "
                         "sim: simulator actions/s per task, ms per render, heightmap and primitive; "
                         "learner: transitions trained/s per batch size vs the naive eager fp32 step; "
                         "system: fleet actions/s for 1 and 2 gripper actors (`romannet up`), weights latency "
                         "to 1 and 8 actors, share of actor time in sim/inference/encoding/transport; "
+                        "pick-geometry: which picks of a lone cube each hand holds, by offset and angle; "
                         "faults: a secure fleet on 5 network-namespace hosts through kill -9 of each service, a "
                         "cut link and an intruder: transitions lost and duplicated (must be 0), recovery times "
                         "(root; exit 1 if anything is lost or allowed that must not be)")
@@ -273,7 +283,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--inserts", type=int, default=2000, help="replay: transitions inserted (and recovered)")
     p.add_argument("--actions", type=int, default=10, help="sim: actions per task and policy; system: per actor")
-    p.add_argument("--robots", default="arm,gripper", help="sim: comma-separated robot modes (arm, gripper)")
+    p.add_argument("--robots", default="arm,gripper", help="sim: comma-separated robot modes (arm, gripper); "
+                   "pick-geometry: the last one")
+    p.add_argument("--hands", default="panda,rg2", help="pick-geometry: comma-separated sim.hand values")
+    p.add_argument("--cube-sizes", default="0.05,0.04", help="pick-geometry: comma-separated cube edges (m)")
     p.add_argument("--batch-sizes", default="1,4,8", help="learner: comma-separated transitions per update")
     p.add_argument("--device", default="cpu", help="learner: torch device, e.g. cpu or cuda (when there is a GPU)")
 
