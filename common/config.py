@@ -21,7 +21,7 @@ from .config_pacing import check_pacing
 from .config_replay import ReplayConfig
 from .config_robot import RealSenseConfig, RobotConfig
 from .config_sim import SimConfig
-from .configbase import apply_overrides, from_dict, read_toml, require
+from .configbase import apply_overrides, from_dict, read_recipe, require
 from .errors import ConfigError
 
 PRIMITIVES = ("push", "pick", "place")
@@ -254,8 +254,9 @@ class Config:
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
-    """Defaults, then the TOML file (if given), then `section.field=value` overrides, validated."""
-    data: dict[str, Any] = read_toml(path) if path is not None else {}
+    """Defaults, then the TOML file (if given, with its `base` chain: configbase.read_recipe), then
+    `section.field=value` overrides, validated."""
+    data: dict[str, Any] = read_recipe(path) if path is not None else {}
     data = apply_overrides(data, list(overrides))
     return from_dict(Config, data)
 

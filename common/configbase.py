@@ -152,6 +152,45 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError("config file", str(path), f"not valid TOML ({err})") from None
 
 
+MAX_BASE_DEPTH = 8
+
+
+def read_recipe(path: str | Path) -> dict[str, Any]:
+    """A config file with its `base` chain merged in: a top-level `base = "other.toml"` (relative to the
+    file) is read first and this file's values are laid over it, section by section, so a recipe states
+    only what differs from the one it builds on."""
+    return _read_with_bases(Path(path), [])
+
+
+def _read_with_bases(path: Path, chain: list[Path]) -> dict[str, Any]:
+    resolved = path.resolve()
+    if resolved in chain:
+        raise ConfigError("base", str(path), "the recipes name each other as base in a loop: "
+                          + " -> ".join(p.name for p in (*chain, resolved)))
+    if len(chain) >= MAX_BASE_DEPTH:
+        raise ConfigError("base", str(path), f"more than {MAX_BASE_DEPTH} recipes deep")
+    data = read_toml(path)
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    if not isinstance(base, str) or not base:
+        raise ConfigError("base", repr(base), f"in {path}: must be the path of another recipe, e.g. "
+                          "base = \"clutter.toml\"")
+    below = _read_with_bases(path.parent / base, [*chain, resolved])
+    return merge_dicts(below, data)
+
+
+def merge_dicts(below: dict[str, Any], above: dict[str, Any]) -> dict[str, Any]:
+    """`above` laid over `below`: sections merge key by key, any other value of `above` replaces."""
+    out = _deep_copy(below)
+    for key, value in above.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge_dicts(out[key], value)
+        else:
+            out[key] = _deep_copy(value) if isinstance(value, dict) else value
+    return out
+
+
 def dumps_toml(cfg: Any) -> str:
     return tomli_w.dumps(to_dict(cfg))
 
