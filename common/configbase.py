@@ -8,9 +8,11 @@ keys and wrong types with a ConfigError that names the field, the value and what
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import types
 import typing
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -74,6 +76,16 @@ def _coerce(value: Any, tp: Any, field: str) -> Any:
     raise TypeError(f"unsupported config type {tp!r} for field {field}")
 
 
+def unknown_field_hint(key: str, fields: Iterable[str], prefix: str) -> str:
+    """"unknown field; did you mean sim.hand?" for a near miss, else the section's fields."""
+    names = sorted(fields)
+    close = difflib.get_close_matches(key, names, n=2, cutoff=0.6)
+    if close:
+        return "unknown field; did you mean " + " or ".join(f"{prefix}.{c}" if prefix else c for c in close) + "?"
+    where = f"[{prefix}]" if prefix else "the top level"
+    return f"unknown field; {where} has: {', '.join(names)}"
+
+
 def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
     """Build config dataclass `cls` from a dict; missing keys take defaults, unknown keys are errors."""
     hints = typing.get_type_hints(cls)
@@ -82,7 +94,7 @@ def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
     for key, value in data.items():
         name = f"{prefix}.{key}" if prefix else key
         if key not in fields:
-            raise ConfigError(name, value, f"unknown field; {cls.__name__} has: {', '.join(sorted(fields))}")
+            raise ConfigError(name, value, unknown_field_hint(key, fields, prefix))
         kwargs[key] = _coerce(value, hints[key], name)
     try:
         obj = cls(**kwargs)

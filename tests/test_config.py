@@ -152,3 +152,12 @@ def test_a_recipe_states_what_differs_from_its_base(tmp_path):
     (tmp_path / "c.toml").write_text('base = "nowhere.toml"\n')
     with pytest.raises(ConfigError, match="nowhere.toml"):
         load_config(tmp_path / "c.toml")
+
+
+def test_an_unknown_field_names_the_near_miss():
+    with pytest.raises(ConfigError, match=r"did you mean sim\.hand\?"):
+        load_config(overrides=['sim.hands="rg2"'])
+    with pytest.raises(ConfigError, match=r"did you mean learner\?"):
+        load_config(overrides=["learnr.lr=0.1"])
+    with pytest.raises(ConfigError, match=r"\[sim\] has: .*hand"):  # nothing close: the section's fields
+        load_config(overrides=["sim.zzz=1"])
