@@ -322,18 +322,24 @@ def run_replay_server(cfg: Any, directory: str | Path, zenoh_config: zenoh.Confi
                       ready: Callable[[ReplayServer], None] | None = None) -> dict:
     """Open the store in `directory`, serve it until stop_event is set, then shut down cleanly.
 
-    cfg: the ReplayConfig. Snapshots every cfg.snapshot_interval_s seconds (if the config has it) and once
-    more at shutdown. Shutdown order matters: stop taking queries (so nothing new is acknowledged), finish
-    queued work, snapshot, close the store (flushes the log), close the session. Returns the final stats.
+    cfg: the ReplayConfig. The store is opened first: it locks the directory, so a second server on a
+    directory in use raises DirectoryInUseError before it opens a Zenoh session or announces anything.
+    Snapshots every cfg.snapshot_interval_s seconds (if the config has it) and once more at shutdown.
+    Shutdown order matters: stop taking queries (so nothing new is acknowledged), finish queued work,
+    snapshot, close the store (flushes the log), close the session. Returns the final stats.
     ready(server) is called once the server is serving (tests and `romannet up` use it).
     """
     from .store import ReplayStore
 
     interval_s = float(getattr(cfg, "snapshot_interval_s", 0) or 0)
     final: dict = {}
-    session = zenoh.open(zenoh_config)
+    store = ReplayStore(cfg, directory)  # takes the directory's lock
     try:
-        store = ReplayStore(cfg, directory)
+        session = zenoh.open(zenoh_config)
+    except BaseException:
+        store.close()
+        raise
+    try:
         try:
             server = ReplayServer(store, session, run_id, limits)
             server.start()

@@ -5,7 +5,9 @@ an fsync'ed MCAP log chunk (log.py; concurrent inserts share one fsync), so ever
 survives kill -9 and power loss; items become sampleable in id order once durable. The index (priorities,
 locations, idempotency keys) lives in memory and is snapshotted periodically by a background thread;
 restart = snapshot + log tail (recovery.py). Transition bytes stay on disk and are read per sample (the
-OS page cache keeps recent ones in memory), so memory does not grow with capacity_bytes.
+OS page cache keeps recent ones in memory), so memory does not grow with capacity_bytes. One store per
+directory: it holds <dir>/LOCK (common/dirlock.py) from before recovery until close, so a second store
+(another replay server, a tool) on a directory in use fails at once with DirectoryInUseError.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from romannet.common.config_replay import ReplayConfig
+from romannet.common.dirlock import DirectoryLock
 from romannet.common.wire import (
     InsertAckMsg,
     PriorityUpdateMsg,
@@ -81,9 +84,14 @@ class ReplayStore:
         self._rng = np.random.default_rng()
         self._closed = False
         self._limiter = RateLimiter(cfg.min_size_to_sample, cfg.samples_per_insert, cfg.spi_tolerance)
-        self.recovered = recover(self.directory)
-        self._load(self.recovered)
-        self._log = SegmentLog(self.directory, cfg.segment_max_bytes, cfg.fsync, cfg.group_commit)
+        self._dir_lock = DirectoryLock(self.directory, "replay directory")  # before recovery repairs anything
+        try:
+            self.recovered = recover(self.directory)
+            self._load(self.recovered)
+            self._log = SegmentLog(self.directory, cfg.segment_max_bytes, cfg.fsync, cfg.group_commit)
+        except BaseException:
+            self._dir_lock.release()
+            raise
         self._since_snapshot = 0
         self._wake = threading.Event()
         self._snapshotter = threading.Thread(target=self._snapshot_loop, name="replay-snapshot", daemon=True)
@@ -360,10 +368,13 @@ class ReplayStore:
         self._limiter.close()
         self._wake.set()
         self._snapshotter.join(timeout=30)
-        self._log.close()
-        with self._lock:
-            self._publish()
-        self.snapshot()
+        try:
+            self._log.close()
+            with self._lock:
+                self._publish()
+            self.snapshot()
+        finally:
+            self._dir_lock.release()
 
     def __enter__(self) -> ReplayStore:
         return self

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from romannet.common.dirlock import check_not_locked
 from romannet.common.errors import RomannetError
 from romannet.common.fsutil import write_json_atomic
 
@@ -71,6 +72,7 @@ def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
         if args.config is not None:
             raise RomannetError("--resume uses the run's saved config.toml; change it with --set, not --config")
         _check_not_running(run_dir)
+        _check_replay_free(run_dir)
         _warn_left_spools(run_dir, args.actors)
         before = load_config(saved)
         cfg = load_config(saved, overrides)
@@ -120,6 +122,12 @@ def _check_not_running(run_dir: Path) -> None:
         return
     if pid != os.getpid() and b"romannet" in cmdline:
         raise RomannetError(f"{run_dir} is in use by a running `romannet up` (pid {pid}); stop it first")
+
+
+def _check_replay_free(run_dir: Path) -> None:
+    """Refuse a run whose replay directory a replay server holds (started by hand, or left by a launcher
+    that died): the fleet's own replay server would stop at its lock and crash-loop."""
+    check_not_locked(run_dir / "replay", "replay directory")
 
 
 def _warn_left_spools(run_dir: Path, actors: int) -> None:

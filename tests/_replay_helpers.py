@@ -41,6 +41,7 @@ def crash(store: ReplayStore) -> None:
     for fd in log._readers.values():
         os.close(fd)
     log._readers.clear()
+    store._dir_lock.release()  # the kernel drops a dead process's flock
 
 
 def segments(directory: Path) -> list[Path]:

@@ -10,7 +10,8 @@ configuration and the X rule, so rescored and original experience can share a re
 rescoring the same files the same way again gives the same ids (feeding them twice adds nothing). Each
 output file is the source file with its /transition and /step messages rewritten (everything else,
 images and Q maps included, is copied as is), its config metadata carrying the new [reward] section and a
-"rescore" metadata record naming the source and the rule. Output layout: OUT/<run>/<actor>/<episode>.mcap.
+"rescore" metadata record naming the source and the rule. Output layout: OUT/<run>/<actor>/<episode>.mcap;
+ids that could leave OUT (common/safe_names.py) make the file an error of its own, the others go on.
 """
 
 from __future__ import annotations
@@ -39,12 +40,14 @@ from romannet.common.episode_file import (
     HEIGHTMAP_DEPTH_TOPIC,
     STEP_TOPIC,
     TRANSITION_TOPIC,
+    EpisodeFileError,
     EpisodeReader,
     RecordedMessage,
 )
 from romannet.common.errors import ConfigError, RomannetError
 from romannet.common.imagecodec import units_to_depth_m
 from romannet.common.rescoring import Score, SuccessRule, rescore_step
+from romannet.common.safe_names import UnsafeNameError, safe_name
 from romannet.common.wire import decode_transition
 
 from .render import decode_raw16
@@ -129,7 +132,7 @@ class _Episode:
         self.reward = settings.reward(self.cfg.reward)
         self.rule = settings.rule
         self.tag = digest(self.reward, self.rule)
-        self.source_id = reader.episode.get("episode_id", reader.path.stem)
+        self.source_id = _recorded_name(reader.path, reader.episode, "episode_id", reader.path.stem)
         self.episode_id = rescored_id(self.source_id, self.tag)
         self.depth_start: np.ndarray | None = None
         self.last: tuple[Score, pb.Transition] | None = None
@@ -179,6 +182,21 @@ class _Episode:
         return {EPISODE_METADATA: episode, CONFIG_METADATA: {"toml": dumps_toml(config)}, "rescore": rescore}
 
 
+def _recorded_name(path: Path, episode: dict[str, str], key: str, default: str) -> str:
+    """The episode metadata's `key` (default if absent), checked before it names a file or a directory."""
+    try:
+        return safe_name(episode.get(key, default), f"metadata {key}")
+    except UnsafeNameError as err:
+        raise EpisodeFileError(path, str(err)) from None
+
+
+def output_path(out_dir: Path, reader: EpisodeReader, episode_id: str) -> Path:
+    """OUT/<run>/<actor>/<episode_id>.mcap, every component checked: a crafted file cannot leave out_dir."""
+    run = _recorded_name(reader.path, reader.episode, "run_id", "run")
+    actor = _recorded_name(reader.path, reader.episode, "actor_id", "actor")
+    return out_dir / run / actor / f"{episode_id}.mcap"
+
+
 def _depth_of(msg: RecordedMessage) -> np.ndarray:
     return units_to_depth_m(decode_raw16(msg.data))
 
@@ -216,8 +234,7 @@ def rescore_file(path: str | Path, settings: RescoreSettings, out_dir: Path | No
         writer: EpisodeWriter | None = None
         for ep, msg, new in _rescored_messages(reader, lambda r: _Episode(r, settings), result):
             if writer is None and out_dir is not None:
-                meta = reader.episode
-                target = out_dir / meta.get("run_id", "run") / meta.get("actor_id", "actor") / f"{ep.episode_id}.mcap"
+                target = output_path(out_dir, reader, ep.episode_id)
                 if target.resolve() == Path(path).resolve():
                     raise RomannetError(f"{path}: --out would overwrite the source file")
                 writer = stack.enter_context(EpisodeWriter(target, ep.metadata(reader),
