@@ -1,10 +1,12 @@
-"""Exact, atomic learner checkpoints as safetensors + JSON (no pickle, no torch.load).
+"""Exact, atomic, checksummed learner checkpoints as safetensors + JSON (no pickle, no torch.load).
 
 Layout of a run directory:
 
     RUN_DIR/checkpoints/ckpt-000001000/tensors.safetensors   model/…, target/…, momentum/…, rng/torch, rng/numpy
     RUN_DIR/checkpoints/ckpt-000001000/state.json            updates, LAE state, numpy/python RNG, configs
+    RUN_DIR/checkpoints/ckpt-000001000/manifest.json         sha256 and size of the two files above
     RUN_DIR/checkpoints/LATEST                               name of the newest complete checkpoint
+    RUN_DIR/checkpoints/versions.json                        bound on the weights versions published (versions.py)
 
 A checkpoint is written into a temporary directory, fsync'ed, renamed into place, and only then named in
 LATEST (itself replaced atomically), so a crash at any moment leaves the previous checkpoint loadable.
@@ -13,10 +15,14 @@ target net, the update counter, the exploration rate, and the torch / numpy / py
 with the same thread count the update after a resume is bit-identical to the uninterrupted run's
 (tests/test_checkpoint.py).
 
+Every read goes through ckpt_integrity.py: a checkpoint is used only when its files match their manifest
+and hold what the saved model config says. A resume takes the newest intact checkpoint, naming each newer
+damaged one in one warning line (tests/test_checkpoint_damage.py).
+
 Starting a run from trained weights (`--init-from`) reads the online net out of a checkpoint, a run
-directory (its newest checkpoint) or a model package (models/<experiment>/, packed by romannet/models.py:
-weights.safetensors in bf16, its config.toml and model.json with the weights' sha256); the update counter,
-the optimiser and the exploration rate start fresh.
+directory (its newest intact checkpoint) or a model package (models/<experiment>/, packed by
+romannet/models.py: weights.safetensors in bf16, its config.toml and model.json with the weights' sha256);
+the update counter, the optimiser and the exploration rate start fresh.
 """
 
 from __future__ import annotations
@@ -42,18 +48,23 @@ from romannet.common.exploration import ExplorationRate
 from romannet.common.fsutil import fsync_directory
 from romannet.common.model import RoManNet, load_tensors, state_dict_to_tensors, validate_tensors
 
+from .ckpt_integrity import (
+    FORMAT_VERSION,
+    VerifiedCheckpoint,
+    checkpoint_candidates,
+    checkpoint_dir,
+    is_checkpoint_dir,
+    newest_intact,
+    read_verified,
+    write_checkpoint_files,
+)
+
 if TYPE_CHECKING:  # only for annotations: reading weights (romannet models, --init-from checks) stays light
     from .trainer import Trainer
 
 logger = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
 LATEST = "LATEST"
-
-
-def checkpoint_dir(run_dir: str | Path) -> Path:
-    """Where a run's checkpoints live."""
-    return Path(run_dir) / "checkpoints"
 
 
 def _fsync_write(path: Path, data: bytes) -> None:
@@ -61,7 +72,6 @@ def _fsync_write(path: Path, data: bytes) -> None:
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
-
 
 
 def _rng_state() -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -90,15 +100,8 @@ def _configs(trainer: Trainer) -> dict[str, Any]:
         ("task", trainer.task_cfg), ("exploration", trainer.exploration_cfg))}
 
 
-def save_checkpoint(trainer: Trainer, run_dir: str | Path) -> Path:
-    """Write the trainer's complete state as RUN_DIR/checkpoints/ckpt-<updates>; returns that directory."""
-    root = checkpoint_dir(run_dir)
-    root.mkdir(parents=True, exist_ok=True)
-    name = f"ckpt-{trainer.updates:09d}"
-    final, tmp = root / name, root / f".{name}.tmp-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-
+def _training_tensors(trainer: Trainer) -> dict[str, torch.Tensor]:
+    """Online and target nets and SGD momentum buffers, as checkpoint tensors."""
     tensors = {f"model/{k}": v for k, v in state_dict_to_tensors(trainer.model).items()}
     if trainer.target is not None:
         tensors.update({f"target/{k}": v for k, v in state_dict_to_tensors(trainer.target).items()})
@@ -106,13 +109,23 @@ def save_checkpoint(trainer: Trainer, run_dir: str | Path) -> Path:
         buf = trainer.optimizer.state.get(param, {}).get("momentum_buffer")
         if buf is not None:
             tensors[f"momentum/{pname}"] = buf.detach().cpu().contiguous()
+    return tensors
+
+
+def save_checkpoint(trainer: Trainer, run_dir: str | Path, version_offset: int = 0) -> Path:
+    """Write the trainer's complete state as RUN_DIR/checkpoints/ckpt-<updates>; returns that directory.
+    version_offset: weights version minus update count of this learner (versions.py), kept for a resume."""
+    root = checkpoint_dir(run_dir)
+    root.mkdir(parents=True, exist_ok=True)
+    name = f"ckpt-{trainer.updates:09d}"
+    final, tmp = root / name, root / f".{name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
     rng_tensors, rng_meta = _rng_state()
-    tensors.update(rng_tensors)
     state = {"format": FORMAT_VERSION, "updates": trainer.updates, "seed": trainer.seed,
-             "exploration": trainer.exploration.state_dict(), "rng": rng_meta, "config": _configs(trainer)}
-    _fsync_write(tmp / "tensors.safetensors", safetensors.torch.save(tensors, metadata={"format": "pt"}))
-    _fsync_write(tmp / "state.json", json.dumps(state, indent=1).encode())
-    fsync_directory(tmp)
+             "version_offset": version_offset, "exploration": trainer.exploration.state_dict(), "rng": rng_meta,
+             "config": _configs(trainer)}
+    write_checkpoint_files(tmp, {**_training_tensors(trainer), **rng_tensors}, state)
     if final.exists():  # e.g. the shutdown checkpoint right after a periodic one at the same update
         old = root / f".{name}.old-{os.getpid()}"
         final.rename(old)
@@ -150,24 +163,37 @@ def latest_checkpoint(run_dir: str | Path) -> Path | None:
     return path
 
 
-def load_checkpoint(trainer: Trainer, run_dir: str | Path, path: str | Path | None = None) -> Path:
-    """Restore the trainer (and the global RNGs) from the run's latest checkpoint, or from `path`."""
-    ckpt = Path(path) if path is not None else latest_checkpoint(run_dir)
-    if ckpt is None:
-        raise FileNotFoundError(f"no checkpoint in {checkpoint_dir(run_dir)}")
-    state = json.loads((ckpt / "state.json").read_text())
-    if state.get("format") != FORMAT_VERSION:
-        raise ValueError(f"{ckpt} has checkpoint format {state.get('format')!r}; this learner reads "
-                         f"{FORMAT_VERSION}")
-    saved_cfg, now_cfg = state["config"], _configs(trainer)
+def has_checkpoints(run_dir: str | Path) -> bool:
+    """Whether the run holds any ckpt-* directory, intact or not (a fresh start there would reuse its names)."""
+    return bool(checkpoint_candidates(run_dir))
+
+
+def load_checkpoint(trainer: Trainer, run_dir: str | Path, path: str | Path | None = None) -> VerifiedCheckpoint:
+    """Restore the trainer (and the global RNGs) from `path`, else from the run's newest intact checkpoint
+    (each newer damaged one is named in a warning line and skipped). CheckpointDamaged when `path` does not
+    verify; NoIntactCheckpoint (a FileNotFoundError) when the run has no intact checkpoint; ValueError when
+    it was trained with another model or task config."""
+    ckpt = (read_verified(path, training_state=True) if path is not None
+            else newest_intact(run_dir, training_state=True))
+    _check_configs(trainer, ckpt)
+    _restore(trainer, ckpt.tensors, ckpt.state)
+    logger.info("resumed from %s (update %d)", ckpt.path, trainer.updates)
+    return ckpt
+
+
+def _check_configs(trainer: Trainer, ckpt: VerifiedCheckpoint) -> None:
+    saved_cfg, now_cfg = ckpt.state["config"], _configs(trainer)
     for section in ("model", "task"):
-        if saved_cfg[section] != now_cfg[section]:
-            raise ValueError(f"{ckpt} was trained with {section} config {saved_cfg[section]}, "
+        if saved_cfg.get(section) != now_cfg[section]:
+            raise ValueError(f"{ckpt.path} was trained with {section} config {saved_cfg.get(section)}, "
                              f"but this learner has {now_cfg[section]}: resume with the run's config")
     changed = [s for s in now_cfg if saved_cfg.get(s) != now_cfg[s]]
     if changed:
-        logger.warning("resuming %s with changed config sections %s", ckpt, changed)
-    tensors = safetensors.torch.load_file(str(ckpt / "tensors.safetensors"))
+        logger.warning("resuming %s with changed config sections %s", ckpt.path, changed)
+
+
+def _restore(trainer: Trainer, tensors: Mapping[str, torch.Tensor], state: Mapping[str, Any]) -> None:
+    """Put verified checkpoint contents into the trainer and the global RNGs."""
     load_tensors(trainer.model, {k[6:]: v for k, v in tensors.items() if k.startswith("model/")})
     if trainer.target is not None:
         target = {k[7:]: v for k, v in tensors.items() if k.startswith("target/")}
@@ -178,16 +204,11 @@ def load_checkpoint(trainer: Trainer, run_dir: str | Path, path: str | Path | No
     trainer.optimizer.state.clear()
     for pname, param in trainer.model.named_parameters():
         buf = tensors.get(f"momentum/{pname}")
-        if buf is not None:
-            if buf.shape != param.shape:
-                raise ValueError(f"{ckpt}: momentum/{pname} has shape {tuple(buf.shape)}, "
-                                 f"expected {tuple(param.shape)}")
+        if buf is not None:  # shape checked by read_verified
             trainer.optimizer.state[param]["momentum_buffer"] = torch.empty_like(param).copy_(buf)
     trainer.updates = int(state["updates"])
     trainer.exploration.load_state_dict(state["exploration"])
-    _set_rng_state(tensors, state["rng"])
-    logger.info("resumed from %s (update %d)", ckpt, trainer.updates)
-    return ckpt
+    _set_rng_state(dict(tensors), state["rng"])
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -289,34 +310,25 @@ def read_package(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, A
 
 
 def read_checkpoint_model(ckpt: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-    """(online net's tensors, state.json) of one checkpoint directory (unvalidated)."""
-    ckpt = Path(ckpt)
-    state = _read_json(ckpt / "state.json")
-    tensors = _load_safetensors(ckpt / "tensors.safetensors")
-    model = {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
-    if not model:
-        raise RomannetError(f"{ckpt / 'tensors.safetensors'} holds no model/ tensors: not a learner checkpoint")
-    return model, state
+    """(online net's tensors, state.json) of one checkpoint directory, verified (CheckpointDamaged otherwise)."""
+    verified = read_verified(ckpt)
+    return verified.model_tensors(), verified.state
 
 
 def weights_source(path: str | Path) -> tuple[str, Path]:
     """("package" | "checkpoint", directory) for a model package, a checkpoint or a run directory (its newest
-    checkpoint); RomannetError naming what was expected otherwise."""
+    intact checkpoint); RomannetError naming what was expected, or what is damaged, otherwise."""
     path = Path(path)
     if not path.is_dir():
         raise RomannetError(f"{path} is not a directory (a model package, a checkpoint or a run directory)")
     if is_model_package(path):
         return "package", path
-    if (path / "tensors.safetensors").is_file() or (path / "state.json").is_file():
+    if is_checkpoint_dir(path):
         return "checkpoint", path
-    try:
-        ckpt = latest_checkpoint(path)
-    except FileNotFoundError as err:
-        raise RomannetError(str(err)) from None
-    if ckpt is None:
+    if not has_checkpoints(path):
         raise RomannetError(f"{path} is neither a model package (model.json), a checkpoint (tensors.safetensors) "
-                            "nor a run directory with checkpoints/LATEST")
-    return "checkpoint", ckpt
+                            "nor a run directory with checkpoints/ckpt-*")
+    return "checkpoint", newest_intact(path).path
 
 
 def read_init_weights(path: str | Path, model_cfg: ModelConfig) -> tuple[dict[str, torch.Tensor], str]:

@@ -28,7 +28,8 @@ from romannet.common.signals import stop_on_signals
 from romannet.common.zenoh_session import make_config, open_session
 
 from .batches import TolerantReplayClient
-from .checkpoint import latest_checkpoint, read_init_weights
+from .checkpoint import read_init_weights
+from .ckpt_integrity import checkpoint_candidates
 from .offline import prefill
 from .service import ServiceOptions, run_learner
 
@@ -47,13 +48,13 @@ def resolve_config(config_path: str | None, overrides: list[str], run_dir: Path,
 
 
 def check_run_dir(run_dir: Path, resume: bool) -> None:
-    """Refuse what would silently go wrong: --resume without a checkpoint, or a fresh start over one
-    (its weights versions would restart at 0, which actors ignore as older than what they hold)."""
-    existing = latest_checkpoint(run_dir)
-    if resume and existing is None:
+    """Refuse what would silently go wrong: --resume without a checkpoint, or a fresh start over one (intact
+    or damaged: its names would be reused). A resume whose checkpoints are all damaged starts fresh, saying so."""
+    existing = checkpoint_candidates(run_dir)
+    if resume and not existing:
         raise RomannetError(f"--resume: {run_dir} holds no checkpoint to resume from")
-    if not resume and existing is not None:
-        raise RomannetError(f"--run-dir {run_dir} already holds checkpoint {existing.name}: pass --resume to "
+    if not resume and existing:
+        raise RomannetError(f"--run-dir {run_dir} already holds checkpoint {existing[0].name}: pass --resume to "
                             "continue that run, or choose a new --run-dir")
 
 

@@ -7,8 +7,10 @@
 Each turn of the loop: wait until the replay holds learner.min_replay_size transitions and the replay-ratio
 cap allows another update (learner/gate.py); sample a batch (a rate-limited or unanswered sample is waited
 out and retried); train one step; send |TD error| per item id back as priorities; publish the exploration
-rate (version = update count); every publish_every_updates publish the weights (version = update count,
-so versions keep increasing across resumes); every checkpoint_every_updates write a checkpoint.
+rate; every publish_every_updates publish the weights; every checkpoint_every_updates write a checkpoint.
+A version is the update count plus an offset that is 0 unless the learner repeats updates it already
+published (a crash, then a resume from an older checkpoint): versions.py keeps them unique across processes.
+A resume takes the newest intact checkpoint; with none intact it starts fresh, saying so in one line.
 
 Stopping: stop_event (set by the SIGTERM/SIGINT handler in learner/main.py) is checked between steps, so
 the step under way finishes; then the latest weights are published, a checkpoint is written, and the
@@ -43,10 +45,12 @@ from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, Tra
 from romannet.common.zenoh_session import ZenohQueryError
 
 from .checkpoint import load_checkpoint, save_checkpoint, start_from_weights
+from .ckpt_integrity import NoIntactCheckpoint
 from .gate import ReplayGate
 from .metrics import LearnerMetrics
 from .publisher import WeightsPublisher
 from .trainer import StepStats, Trainer, batch_items
+from .versions import VersionClock
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +94,7 @@ def run_learner(cfg: Config, run_dir: str | Path, replay_client: ReplayClient, s
     """Train until stop_event is set; returns a summary (updates, skipped items, ...).
 
     cfg: the root config (its learner, model, reward, task, exploration sections and run_id).
-    resume: continue from the checkpoint in run_dir (FileNotFoundError if there is none).
+    resume: continue from the newest intact checkpoint in run_dir (a fresh start, logged, if none is intact).
     init_weights: a new run's starting weights (checkpoint.read_init_weights), published as version 0.
     ready(trainer): called once weights are published and the liveliness token is up.
     """
@@ -99,35 +103,36 @@ def run_learner(cfg: Config, run_dir: str | Path, replay_client: ReplayClient, s
     run_dir.mkdir(parents=True, exist_ok=True)
     lcfg = cfg.learner
     trainer = Trainer(cfg.model, lcfg, cfg.reward, cfg.task, exploration_cfg=cfg.exploration, device=lcfg.device)
-    if resume:
-        load_checkpoint(trainer, run_dir)  # logs the checkpoint and its update count
-    elif init_weights is not None:
-        start_from_weights(trainer, init_weights)
+    saved_offset, resumed_from = _start_state(trainer, run_dir, resume, init_weights)
+    clock = VersionClock.start(run_dir, trainer.updates, saved_offset, resumed_from, lcfg.publish_every_updates)
+    trainer.version_offset = clock.offset
     write_toml(cfg, run_dir / "config.toml")  # the resolved config of this run, next to its results
     keys = RunKeys(cfg.run_id)
     counters = _Counters()
-    if resume:
+    if resumed_from is not None:
         counters.checkpointed_at = trainer.updates
     metrics = LearnerMetrics(run_dir, opts.image_every_updates, opts.plot_every_s)
     publisher = WeightsPublisher(session, cfg.run_id)
     token = None
     try:
         # Weights first, then the token: an actor that reacts to the token fetches and finds them.
-        publisher.publish_weights(trainer.updates, trainer.state_tensors())
-        publisher.publish_exploration(trainer.updates, trainer.exploration.value, trainer.exploration_cfg.policy)
+        publisher.publish_weights(clock.claim(trainer.updates), trainer.state_tensors())
+        publisher.publish_exploration(clock.claim(trainer.updates), trainer.exploration.value,
+                                      trainer.exploration_cfg.policy)
         token = session.liveliness().declare_token(keys.learner_alive)
         if ready is not None:
             ready(trainer)
-        _loop(trainer, replay_client, publisher, metrics, stop_event, counters, opts)
+        _loop(trainer, replay_client, publisher, clock, metrics, stop_event, counters, opts)
     finally:
         log.info("learner stopping at update %d: final weights and checkpoint", trainer.updates)
         try:
-            if publisher.version != trainer.updates:
-                publisher.publish_weights(trainer.updates, trainer.state_tensors())
+            if publisher.version != clock.version(trainer.updates):
+                publisher.publish_weights(clock.claim(trainer.updates), trainer.state_tensors())
         except Exception as exc:  # non-finite weights or a closed session: the checkpoint matters more
             log.warning("could not publish the final weights: %s", exc)
         if counters.checkpointed_at != trainer.updates:  # else the periodic one at this update is it
-            save_checkpoint(trainer, run_dir)
+            save_checkpoint(trainer, run_dir, clock.offset)
+        clock.release(trainer.updates, f"ckpt-{trainer.updates:09d}")
         if token is not None:
             token.undeclare()
         publisher.close()
@@ -140,8 +145,23 @@ def run_learner(cfg: Config, run_dir: str | Path, replay_client: ReplayClient, s
     return summary
 
 
-def _loop(trainer: Trainer, client: ReplayClient, publisher: WeightsPublisher, metrics: LearnerMetrics,
-          stop: threading.Event, counters: _Counters, opts: ServiceOptions) -> None:
+def _start_state(trainer: Trainer, run_dir: Path, resume: bool,
+                 init_weights: Mapping[str, torch.Tensor] | None) -> tuple[int, str | None]:
+    """Load the newest intact checkpoint (resume) or the init weights into the trainer; returns the loaded
+    checkpoint's version offset and name, (0, None) for a fresh start."""
+    if resume:
+        try:
+            ckpt = load_checkpoint(trainer, run_dir)  # logs it, and each newer damaged one it skipped
+            return int(ckpt.state.get("version_offset", 0)), ckpt.path.name
+        except NoIntactCheckpoint as err:
+            log.warning("%s: starting fresh at update 0", err)
+    if init_weights is not None:
+        start_from_weights(trainer, init_weights)
+    return 0, None
+
+
+def _loop(trainer: Trainer, client: ReplayClient, publisher: WeightsPublisher, clock: VersionClock,
+          metrics: LearnerMetrics, stop: threading.Event, counters: _Counters, opts: ServiceOptions) -> None:
     lcfg = trainer.cfg
     gate = ReplayGate(client, lcfg.min_replay_size, lcfg.max_updates_per_insert, opts.stats_every_s,
                       stats_timeout_s=opts.sample_timeout_s)
@@ -173,14 +193,15 @@ def _loop(trainer: Trainer, client: ReplayClient, publisher: WeightsPublisher, m
             continue
         counters.steps += 1
         client.update_priorities(stats.priority_update())
-        publisher.publish_exploration(stats.updates, stats.exploration_rate, trainer.exploration_cfg.policy)
+        publisher.publish_exploration(clock.claim(stats.updates), stats.exploration_rate,
+                                      trainer.exploration_cfg.policy)
         if stats.updates % lcfg.publish_every_updates == 0:
-            publisher.publish_weights(stats.updates, trainer.state_tensors())
+            publisher.publish_weights(clock.claim(stats.updates), trainer.state_tensors())
         step_times.append(time.monotonic())
         _record(trainer, metrics, stats, [t for t, _, _ in items], batch.buffer_size, gate, step_times,
                 sample_latency_s, counters, publisher)
         if stats.updates % lcfg.checkpoint_every_updates == 0:
-            save_checkpoint(trainer, metrics.run_dir)
+            save_checkpoint(trainer, metrics.run_dir, clock.offset)
             counters.checkpointed_at = stats.updates
             metrics.flush()
         next_log_s = _maybe_log(next_log_s, opts, "update %d: loss %.4g, explore %.3f, replay %d, V(s') from "

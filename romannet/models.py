@@ -45,7 +45,6 @@ from romannet.common.config import load_config
 from romannet.common.configbase import to_dict
 from romannet.common.errors import RomannetError
 from romannet.learner.checkpoint import (
-    FORMAT_VERSION,
     PACKAGE_CONFIG,
     PACKAGE_FORMAT,
     PACKAGE_META,
@@ -61,6 +60,7 @@ from romannet.learner.checkpoint import (
     to_package_dtypes,
     weights_source,
 )
+from romannet.learner.ckpt_integrity import read_verified, write_checkpoint_files
 
 log = logging.getLogger("romannet.models")
 
@@ -232,6 +232,15 @@ def cache_root() -> Path:
     return Path(base) / "romannet"
 
 
+def _cache_intact(ckpt: Path) -> bool:
+    try:
+        read_verified(ckpt)
+    except RomannetError as err:
+        log.warning("%s; writing it again", err)
+        return False
+    return True
+
+
 def resolve_model_dir(path: str | Path) -> tuple[Path, Path]:
     """(checkpoint-like directory, config.toml) of a model package: the directory holds tensors.safetensors
     (the package's weights in fp32 under model/) and state.json (updates, model config), as a learner
@@ -243,17 +252,16 @@ def resolve_model_dir(path: str | Path) -> tuple[Path, Path]:
     key = hashlib.sha256((meta["weights"]["sha256"] + sha256_file(config_path)).encode()).hexdigest()[:16]
     updates = int(meta.get("updates") or 0)
     ckpt = cache_root() / "models" / f"{path.resolve().name}-{key}" / f"ckpt-{updates:09d}"
+    if (ckpt / "state.json").is_file() and not _cache_intact(ckpt):
+        shutil.rmtree(ckpt, ignore_errors=True)  # a damaged copy is written again from the (checked) package
     if not (ckpt / "state.json").is_file():
         stage = ckpt.parent / f".{ckpt.name}.tmp-{os.getpid()}"
         shutil.rmtree(stage, ignore_errors=True)
         stage.mkdir(parents=True)
-        safetensors.torch.save_file({f"model/{k}": v for k, v in tensors.items()},
-                                    str(stage / "tensors.safetensors"), metadata={"format": "pt"})
-        state = {"format": FORMAT_VERSION, "updates": updates, "package": str(path.resolve()),
-                 "weights_sha256": meta["weights"]["sha256"],
+        state = {"updates": updates, "package": str(path.resolve()), "weights_sha256": meta["weights"]["sha256"],
                  "config": {name: to_dict(getattr(cfg, name)) for name in
                             ("model", "learner", "reward", "task", "exploration")}}
-        (stage / "state.json").write_text(json.dumps(state, indent=1), encoding="utf-8")
+        write_checkpoint_files(stage, {f"model/{k}": v for k, v in tensors.items()}, state)
         try:
             stage.rename(ckpt)
         except OSError:  # another process wrote the same copy first

@@ -157,8 +157,10 @@ def build_specs(run_dir: Path, cfg: Config, args: argparse.Namespace, replay_ep:
     stop_s = args.stop_timeout
 
     def learner_argv() -> list[str]:
-        # A (re)start over a checkpoint must resume it: the learner refuses to start fresh over one.
-        resume = ["--resume"] if (run_dir / "checkpoints" / "LATEST").is_file() else []
+        # A (re)start over a checkpoint must resume it: the learner refuses to start fresh over one (intact
+        # or not; it resumes from the newest intact one, or starts fresh saying so when none is).
+        ckpts = run_dir / "checkpoints"
+        resume = ["--resume"] if (ckpts / "LATEST").is_file() or any(ckpts.glob("ckpt-*")) else []
         recordings = getattr(args, "from_recordings", [])
         offline = [arg for path in recordings for arg in ("--offline", str(Path(path).resolve()))]
         init_from = getattr(args, "init_from", None)

@@ -81,7 +81,8 @@ def test_checkpoint_files_are_safetensors_and_json_and_pruned(tmp_path):
         save_checkpoint(t, tmp_path)
     root = tmp_path / "checkpoints"
     assert sorted(p.name for p in root.glob("ckpt-*")) == ["ckpt-000000002", "ckpt-000000003"]
-    assert sorted(p.name for p in (root / "ckpt-000000003").iterdir()) == ["state.json", "tensors.safetensors"]
+    assert sorted(p.name for p in (root / "ckpt-000000003").iterdir()) == ["manifest.json", "state.json",
+                                                                        "tensors.safetensors"]
     state = json.loads((root / "ckpt-000000003" / "state.json").read_text())
     assert state["updates"] == 3 and state["config"]["learner"]["lr"] == 1e-4
     # A half-written checkpoint (a crash before the rename) is ignored.

@@ -91,26 +91,29 @@ def _checkpoint_interval(run_dir: Path) -> str:
 
 
 def resolve_checkpoint(path: Path) -> tuple[Path, Path]:
-    """(checkpoint directory, run directory) for a run directory, a checkpoint directory or a model package
-    (models/<experiment>/: a checkpoint-like fp32 copy of its weights, the package standing for the run)."""
+    """(checkpoint directory, run directory) for a run directory (its newest intact checkpoint), a checkpoint
+    directory (verified) or a model package (models/<experiment>/: a checkpoint-like fp32 copy of its weights,
+    the package standing for the run); RomannetError (one line) when none is usable."""
     if (path / "model.json").is_file():
         from romannet.models import resolve_model_dir
 
         return resolve_model_dir(path)[0], path
-    if (path / "tensors.safetensors").is_file():
-        return path, path.parent.parent
-    from romannet.learner.checkpoint import latest_checkpoint
+    from romannet.learner.ckpt_integrity import (
+        checkpoint_candidates,
+        is_checkpoint_dir,
+        newest_intact,
+        read_verified,
+    )
 
-    try:
-        ckpt = latest_checkpoint(path)
-    except FileNotFoundError as err:
-        raise RomannetError(str(err)) from None
-    if ckpt is None:
-        if (path / "config.toml").is_file() or (path / "checkpoints").is_dir():
-            raise RomannetError(f"{path} has no checkpoint yet: the learner writes one "
-                                f"{_checkpoint_interval(path)} and when it stops")
-        raise RomannetError(f"{path} is neither a checkpoint directory nor a run directory with checkpoints/LATEST")
-    return ckpt, path
+    if is_checkpoint_dir(path):
+        read_verified(path)  # a damaged one: CheckpointDamaged, one line naming it and what is wrong
+        return path, path.parent.parent
+    if checkpoint_candidates(path):
+        return newest_intact(path).path, path  # the newest intact one, each newer damaged one named in a warning
+    if (path / "config.toml").is_file() or (path / "checkpoints").is_dir():
+        raise RomannetError(f"{path} has no checkpoint yet: the learner writes one "
+                            f"{_checkpoint_interval(path)} and when it stops")
+    raise RomannetError(f"{path} is neither a checkpoint directory nor a run directory with checkpoints/ckpt-*")
 
 
 def _machine() -> str:

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import safetensors.torch
 import torch
 
 from romannet.actor.sim.env import SimEnv
@@ -96,13 +95,10 @@ def run_config(base: Config, spec: RunSpec) -> Config:
 
 
 def load_model_tensors(checkpoint: str | Path) -> dict[str, torch.Tensor]:
-    """The online net's tensors of a checkpoint directory (safetensors; no pickle)."""
-    path = Path(checkpoint) / "tensors.safetensors"
-    tensors = safetensors.torch.load_file(str(path))
-    model = {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
-    if not model:
-        raise ValueError(f"{path} holds no model/ tensors: not a learner checkpoint")
-    return model
+    """The online net's tensors of a checkpoint directory, verified (learner/ckpt_integrity.py; no pickle)."""
+    from romannet.learner.ckpt_integrity import read_verified
+
+    return read_verified(checkpoint).model_tensors()
 
 
 class Worker:
