@@ -19,6 +19,7 @@ does not; NoIntactCheckpoint when none does.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -157,8 +158,9 @@ def _check_state(ckpt: Path, state: Mapping[str, Any], training_state: bool) -> 
     model = (state.get("config") or {}).get("model") if isinstance(state.get("config"), dict) else None
     if not isinstance(model, dict):
         raise CheckpointDamaged(ckpt, f"{STATE} has no config.model section")
+    known = {f.name for f in dataclasses.fields(ModelConfig)}  # a field since removed does not change shapes
     try:
-        return from_dict(ModelConfig, model, "model")
+        return from_dict(ModelConfig, {k: v for k, v in model.items() if k in known}, "model")
     except RomannetError as err:
         raise CheckpointDamaged(ckpt, f"{STATE}: {err}") from None
 
