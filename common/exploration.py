@@ -217,7 +217,8 @@ def _random_angle(primitive: str, rng: np.random.Generator) -> float:
 
 
 def select_action(q_maps: dict[str, np.ndarray], angle_maps: dict[str, np.ndarray], explore_rate: float,
-                  cfg: ExplorationConfig, rng: np.random.Generator) -> Action:
+                  cfg: ExplorationConfig, rng: np.random.Generator,
+                  masks: dict[str, np.ndarray] | None = None) -> Action:
     """The LAE policy: explore (uniform over action candidates) if xi < explore_rate, else argmax.
 
     Args:
@@ -226,6 +227,8 @@ def select_action(q_maps: dict[str, np.ndarray], angle_maps: dict[str, np.ndarra
         explore_rate: E in [0, 1] (pushed by the learner).
         cfg: top_k, candidate_min_distance_px and random_angle_prob are used.
         rng: the actor's generator; the same seed and maps give the same action.
+        masks: {primitive: bool (h, w)} valid pixels (common.action_mask); the q_maps are already masked
+            (common.action_mask.masked_q) and exploring draws only among valid candidates.
 
     Exploring picks one of action_candidates(...) uniformly (explored=True); with probability
     cfg.random_angle_prob the angle is drawn uniformly from ANGLE_RANGE_RAD[primitive], else read from that
@@ -241,6 +244,8 @@ def select_action(q_maps: dict[str, np.ndarray], angle_maps: dict[str, np.ndarra
 
     if rng.random() < explore_rate:
         candidates = action_candidates(q_maps, cfg.top_k, cfg.candidate_min_distance_px)
+        if masks is not None:
+            candidates = [c for c in candidates if masks[c[0]][c[1], c[2]]] or candidates
         prim, row, col, q = candidates[int(rng.integers(len(candidates)))]
         angle_map = _as_map(angle_maps[prim], f"{prim} angle", np.shape(q_maps[prim]))
         if rng.random() < cfg.random_angle_prob:

@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .action import Action
+from .action_mask import action_masks, masked_q
 from .config import ExplorationConfig, ModelConfig
 from .exploration import select_action
 from .model import GRConvNet, RoManNet, decode_rotation, load_tensors, preprocess
@@ -297,5 +298,9 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
         maps = model.infer(color_hm, depth_hm, nets)
     else:
         maps = reference_maps(model, color_hm, depth_hm, nets)
-    action = select_action(maps.q, maps.angle, explore_rate, exploration_cfg, rng)
+    masks = None
+    if exploration_cfg.action_mask:  # masked pixels sink below every valid Q (V = max Q sees them too)
+        masks = action_masks(depth_hm, nets, exploration_cfg)
+        maps = PolicyMaps({p: masked_q(q, masks[p]) for p, q in maps.q.items()}, maps.angle)
+    action = select_action(maps.q, maps.angle, explore_rate, exploration_cfg, rng, masks)
     return (action, maps) if return_maps else action

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from romannet.common.action_mask import masked_max
 from romannet.common.config import ExplorationConfig, ModelConfig, RewardConfig, TaskConfig
 from romannet.common.config_learner import LearnerConfig
 from romannet.common.errors import ConfigError
@@ -104,14 +105,15 @@ def _fp32_heads(model: RoManNet) -> None:
             head.forward = types.MethodType(_fp32_head_forward, head)
 
 
-def actor_value_usable(t: TransitionMsg, updates: int, max_age: int) -> bool:
+def actor_value_usable(t: TransitionMsg, version: int, max_age: int) -> bool:
     """Whether the actor's V(s_{t+1}) stands in for a forward pass: it was sent, and its weights are at most
-    max_age updates older than the learner's (0: never). A bootstrap from weights a little behind the online
-    net is what a target network does (and the actor acts on exactly that function); an older one is
-    recomputed, so replayed items do not keep the stale targets they were inserted with."""
+    max_age versions older than the learner's weights `version` (update count + version offset; 0: never).
+    A bootstrap from weights a little behind the online net is what a target network does (and the actor
+    acts on exactly that function); an older one is recomputed, so replayed items do not keep the stale
+    targets they were inserted with."""
     if max_age <= 0 or t.next_value is None or t.next_value_version is None:
         return False
-    return 0 <= updates - t.next_value_version <= max_age
+    return 0 <= version - t.next_value_version <= max_age
 
 
 def batch_items(batch: SampleBatchMsg) -> list[BatchItem]:
@@ -152,6 +154,7 @@ class Trainer:
                                          momentum=learner_cfg.momentum, weight_decay=learner_cfg.weight_decay)
         self.exploration = ExplorationRate(self.exploration_cfg)
         self.updates = 0
+        self.version_offset = 0  # weights version minus update count (learner/versions.py; 0 until a crash)
         self.primitives = task_cfg.primitives
         self.actor_values_used = 0  # V(s_{t+1}) taken from the actor's next decision
         self.values_computed = 0  # V(s_{t+1}) computed here by a forward pass
@@ -181,8 +184,8 @@ class Trainer:
         values = [0.0] * len(transitions)
         need = [i for i, t in enumerate(transitions) if not t.done and t.reward > 0]
         bounds = return_range(self.reward_cfg, self.cfg.gamma) if self.cfg.bootstrap_clip else None
-        from_actor = [i for i in need if actor_value_usable(transitions[i], self.updates,
-                                                            self.cfg.actor_value_max_age)]
+        version = self.updates + self.version_offset  # what the actors' next_value_version counts in
+        from_actor = [i for i in need if actor_value_usable(transitions[i], version, self.cfg.actor_value_max_age)]
         for i in from_actor:
             v = float(transitions[i].next_value)
             values[i] = clip_value(v, bounds) if bounds is not None else v
@@ -205,7 +208,12 @@ class Trainer:
                 x = self._inputs([transitions[i].color_after for i in idx], [transitions[i].depth_after for i in idx])
                 with self._autocast():
                     q, _ = net_model.nets[p](x)
-                for i, m in zip(idx, q.float().amax(dim=(1, 2)).tolist(), strict=True):
+                if self.exploration_cfg.action_mask:  # V over the pixels the actors may choose
+                    best = masked_max(q.float(), np.stack([transitions[i].depth_after for i in idx]), p,
+                                      self.exploration_cfg)
+                else:
+                    best = q.float().amax(dim=(1, 2)).tolist()
+                for i, m in zip(idx, best, strict=True):
                     maxima[i][p] = m
             for i in need:
                 t = transitions[i]

@@ -293,3 +293,14 @@ def test_kill9_then_resume_from_an_older_checkpoint_never_reuses_a_version(tmp_p
         # A clean stop and resume keeps its numbering: the same weights under the same last version.
         again = _resume(cfg, run_dir, session, max_updates=8, monkeypatch=monkeypatch)
         assert again[0] == resumed[-1] and again[-1] == 8 + state["version_offset"], (resumed, again)
+
+
+def test_the_trainer_ages_actor_values_in_weights_versions() -> None:
+    """After a resume with a version offset, an actor's V(s_{t+1}) from the current weights is fresh, and one
+    stamped with the same number as an update count (another learner's numbering) is not."""
+    items = [(H.transition(seed=i, next_value=0.4, next_value_version=version), 1.0, i)
+             for i, version in enumerate((13, 12, 3))]
+    t = H.trainer(actor_value_max_age=2)
+    t.updates, t.version_offset = 4, 10  # weights version 14
+    t.train_step(items)
+    assert (t.actor_values_used, t.values_computed) == (2, 1)
