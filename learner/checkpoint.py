@@ -47,6 +47,7 @@ from romannet.common.errors import RomannetError
 from romannet.common.exploration import ExplorationRate
 from romannet.common.fsutil import fsync_directory
 from romannet.common.model import RoManNet, load_tensors, state_dict_to_tensors, validate_tensors
+from romannet.common.safe_names import is_safe_name
 
 from .ckpt_integrity import (
     FORMAT_VERSION,
@@ -158,7 +159,8 @@ def latest_checkpoint(run_dir: str | Path) -> Path | None:
     except FileNotFoundError:
         return None
     path = root / name
-    if not (name.startswith("ckpt-") and (path / "state.json").is_file()):
+    # The name comes from a file: one path component only, never a way out of the checkpoint directory.
+    if not (is_safe_name(name) and name.startswith("ckpt-") and (path / "state.json").is_file()):
         raise FileNotFoundError(f"{root / LATEST} names {name!r}, which is not a complete checkpoint")
     return path
 

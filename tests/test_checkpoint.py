@@ -173,3 +173,14 @@ def test_sigkill_after_checkpoint_then_resume_is_bit_identical(tmp_path):
     for b in batches[3:]:
         resumed.train_step(b)
     _assert_same_state(uninterrupted, resumed)
+
+
+def test_a_latest_file_naming_a_path_outside_the_run_is_refused(tmp_path: Path) -> None:
+    root = tmp_path / "checkpoints"
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "elsewhere" / "state.json").write_text("{}")
+    root.mkdir()
+    (root / "ckpt-x").mkdir()
+    (root / "LATEST").write_text("ckpt-x/../../elsewhere")
+    with pytest.raises(FileNotFoundError, match="not a complete checkpoint"):
+        latest_checkpoint(tmp_path)
