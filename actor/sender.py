@@ -4,12 +4,14 @@ Outcomes of one insert (the item is the spool's oldest; it is resent until one o
 
 * ack "accepted" or "duplicate" -> the item is acknowledged: removed from the spool. A duplicate is what a
   resend of a transition the server already stored gets (its ack was lost, or the actor restarted).
-* ack "rejected", or an error reply that resending cannot cure (undecodable, oversized, wrong shape) -> the
-  item moves to the spool's rejected/ folder with the reason and is logged; it is never resent.
+* ack "rejected", or an error reply that resending cannot cure (common/replay_client.INSERT_REFUSALS:
+  undecodable, oversized, wrong shape, ...) -> the item moves to the spool's rejected/ folder with the
+  reason and is logged; it is never resent.
 * "rate_limited" (RateLimitedError): the server is up, and its samples-per-insert limiter held the insert
   back for the whole wait because the learner lags: pacing, not an outage. The same item is resent 50 ms later
   (the server itself did the waiting); the server stays reachable; one INFO line the first time only.
-* no reply (NoReplyError), a transient error reply (shutting_down, internal) or any other exception -> the
+* no reply (NoReplyError), any other error reply (shutting_down, overloaded, internal, unknown) or any other
+  exception -> the
   server is treated as unreachable: wait (exponential backoff, resend_backoff_initial_s doubling up to
   resend_backoff_max_s) and resend the same item. One log line per outage, one when acks flow again.
 """
@@ -24,6 +26,7 @@ from dataclasses import dataclass
 from romannet.common import romannet_pb2 as pb
 from romannet.common.errors import DecodeError
 from romannet.common.interfaces import ReplayClient
+from romannet.common.replay_client import refused_for_good
 from romannet.common.wire import InsertAckMsg, decode_transition
 from romannet.common.zenoh_session import RemoteError
 
@@ -31,10 +34,8 @@ from .spool import Spool
 
 log = logging.getLogger(__name__)
 
-# Error replies of the replay server after which the same bytes may well succeed later: pacing (the learner
-# lags and the server holds inserts back, see the module docstring) and the transient failures.
+# The error reply of a server that holds inserts back because the learner lags (see the module docstring).
 PACING_REASON = "rate_limited"
-TRANSIENT_REASONS = frozenset({"shutting_down", "internal"})
 # Pause after a pacing reply before the resend: the server held the insert for its wait already, so only a
 # reply that came back at once (a server configured with no wait) needs this to avoid a tight loop.
 _PACED_RESEND_S = 0.05
@@ -175,11 +176,11 @@ class Sender:
             if err.reason == PACING_REASON:
                 self._paced(err.detail)
                 return "paced"
-            if err.reason in TRANSIENT_REASONS:
-                self._failure(f"{err.reason}: {err.detail}")
-                return "failed"
-            self._reject(seq, key_text, f"{err.reason}: {err.detail}")
-            return "settled"
+            if refused_for_good(err.reason):
+                self._reject(seq, key_text, f"{err.reason}: {err.detail}")
+                return "settled"
+            self._failure(f"{err.reason}: {err.detail}")
+            return "failed"
         except Exception as err:  # TimeoutError (no reply), a closing session, ...: resend later
             self._failure(f"{type(err).__name__}: {err}")
             return "failed"

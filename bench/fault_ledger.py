@@ -14,6 +14,7 @@
   item only when the server acknowledged it; an empty spool means everything was acknowledged).
 * stored: distinct (actor, episode, step) keys in the replay server's durable log, read back with
   ReplayStore; duplicates: log items beyond the distinct keys.
+* refused: transitions the server refused and the actor set aside (spool/rejected/): each is a problem.
 * lost: sent transitions not stored, including gaps inside an episode (steps are numbered 0, 1, ... per
   episode, so a missing middle step shows even where counts could hide it).
 """
@@ -48,6 +49,18 @@ def spool_keys(run_dir: Path, actor_id: str) -> set[Key]:
         if key is not None:
             keys.add(key)
     return keys
+
+
+def rejected_reasons(run_dir: Path, actor_id: str) -> list[str]:
+    """The reasons noted beside the transitions the replay server refused and the actor set aside
+    (spool/rejected/*.json, actor/spool.py): nothing the fault scenario sends should ever land there."""
+    reasons = []
+    for note in sorted((run_dir / "actors" / actor_id / "spool" / "rejected").glob("*.json")):
+        try:
+            reasons.append(str(json.loads(note.read_text()).get("reason", "?")))
+        except (OSError, ValueError):
+            reasons.append(f"unreadable note {note.name}")
+    return reasons
 
 
 def next_episode(run_dir: Path, actor_id: str) -> int:
@@ -126,12 +139,16 @@ class Ledger:
                     sent += int(status.get("actions", 0))
                     if status.get("state") != "stopped":
                         problems.append(f"{actor_id}: last process ended in state {status.get('state')!r}")
+            refused = rejected_reasons(self.run_dir, actor_id)
+            if refused:
+                problems.append(f"{actor_id}: {len(refused)} transition(s) refused by the replay server and set "
+                                f"aside in its spool's rejected/ (first: {refused[0][:200]})")
             left = len(spool_keys(self.run_dir, actor_id))
             lost = sent - len(mine) + sum(len(g) for g in gaps.values())
             if len(mine) > sent:
                 problems.append(f"{actor_id}: {len(mine)} stored but only {sent} sent")
             per_actor[actor_id] = {"sent": sent, "acknowledged": sent - left, "stored": len(mine),
-                                   "left_in_spool": left, "episodes": len(episodes),
+                                   "left_in_spool": left, "refused": len(refused), "episodes": len(episodes),
                                    "processes": len(self._procs[actor_id])}
             totals.update(sent=sent, acknowledged=sent - left, left_in_spool=left, lost=max(0, lost))
         duplicates = len(logged) - len(stored)

@@ -26,13 +26,11 @@ from typing import Protocol
 
 from .episode_file import TRANSITION_TOPIC, EpisodeFileError, EpisodeReader
 from .errors import RomannetError
+from .replay_client import refused_for_good
 from .wire_messages import InsertAckMsg
 from .zenoh_session import RemoteError
 
 log = logging.getLogger(__name__)
-
-_RETRYABLE_REASONS = frozenset({"rate_limited", "shutting_down"})
-
 
 class EncodedInserter(Protocol):
     """What feeding needs of a replay client (ZenohReplayClient has it)."""
@@ -109,7 +107,7 @@ def insert_with_retry(client: EncodedInserter, data: bytes, opts: FeedOptions,
         try:
             return client.insert_encoded(data, timeout_s=opts.insert_timeout_s), ""
         except RemoteError as err:
-            if err.reason not in _RETRYABLE_REASONS:
+            if refused_for_good(err.reason):
                 return None, f"{err.reason}: {err.detail}"
             last = str(err)
         except TimeoutError as err:  # NoReplyError: resending is safe, inserts are idempotent

@@ -31,6 +31,20 @@ from .zenoh_session import RemoteError, query_one, wait_for_liveliness
 
 log = logging.getLogger(__name__)
 
+# The error tokens with which the replay server refuses an insert for good: the bytes themselves are bad
+# (replay/rejections.py classifies decode errors into these) or the store cannot hold them. Resending the same
+# bytes cannot cure them. Every other error (rate_limited, shutting_down, overloaded, internal, a token this
+# client does not know, Zenoh's own errors) is transient: the transition is kept and sent again, because a
+# transition dropped on a transient error is acknowledged data lost.
+INSERT_REFUSALS = frozenset({"oversized", "schema_version", "undecodable", "missing_field", "non_finite",
+                             "wrong_shape", "bad_image", "invalid", "wrong_actor", "store_refused"})
+
+
+def refused_for_good(reason: str) -> bool:
+    """True when an insert refused with this error token must not be resent (see INSERT_REFUSALS)."""
+    return reason in INSERT_REFUSALS
+
+
 # The server answers a request that its rate limiter holds back a little before the client's deadline,
 # so the client hears "rate_limited" rather than silence. Seconds.
 _REPLY_MARGIN_S = 0.25

@@ -53,6 +53,11 @@ class RemoteError(ZenohQueryError):
         super().__init__(f"{key} refused the request ({reason}): {detail}")
 
 
+# What Zenoh itself puts in the error reply that ends a query nobody answered in time (no queryable of ours
+# sends it: theirs always carry a `<reason>: ` token). It means "no reply", not "refused".
+_ZENOH_TIMEOUT_PAYLOAD = b"Timeout"
+
+
 def format_error(reason: str, detail: str) -> bytes:
     """The payload of an error reply: `<reason>: <detail>` in UTF-8 (parsed by query_one)."""
     return f"{reason}: {detail}".encode()
@@ -138,7 +143,10 @@ def query_one(session: zenoh.Session, key: str, payload: bytes | None = None, ti
         for reply in replies:
             if reply.ok is not None:
                 return reply.ok.payload.to_bytes()
-            reason, detail = parse_error(reply.err.payload.to_bytes())
+            payload = reply.err.payload.to_bytes()
+            if payload == _ZENOH_TIMEOUT_PAYLOAD:
+                continue  # Zenoh's own end of an unanswered query: NoReplyError below, never a refusal
+            reason, detail = parse_error(payload)
             raise RemoteError(key, reason, detail)
         if time.monotonic() - started >= 0.9 * remaining_s:
             break  # it was delivered (or lost) and waited out the timeout: re-sending cannot help now

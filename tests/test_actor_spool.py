@@ -165,7 +165,11 @@ class ErrorReplyClient:
         raise AssertionError("the sender must use insert_encoded when the client has it")
 
 
-@pytest.mark.parametrize(("reason", "rejected"), [("shutting_down", 0), ("undecodable", 1)])
+# Only the server's bad-input tokens are final; a queue that is full, a crash in a handler, an error token
+# this client does not know (e.g. Zenoh's own) must never cost an acknowledged-to-be transition.
+@pytest.mark.parametrize(("reason", "rejected"), [("shutting_down", 0), ("overloaded", 0), ("internal", 0),
+                                                   ("error", 0), ("undecodable", 1), ("oversized", 1),
+                                                   ("wrong_actor", 1)])
 def test_error_replies_transient_or_permanent(tmp_path: Path, reason: str, rejected: int) -> None:
     spool = Spool(tmp_path / "spool", max_items=10, max_bytes=1 << 30, fsync=False)
     _fill(spool, 1)

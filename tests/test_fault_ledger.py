@@ -84,5 +84,21 @@ def test_every_kind_of_loss_is_named(tmp_path: Path) -> None:
     assert "actor-0: steps missing inside episodes {'ep000000': [1]}" in problems
     assert "actor-0: 1 transition(s) spooled at the kill never stored" in problems
     assert counts["lost"] >= 2 and not counts["counts_agree"]
+    assert counts["per_actor"]["actor-1"]["refused"] == 0
     assert counts["left_in_spools"] == 2  # actor-0's unsent one and actor-1's
     assert counts["acknowledged"] < counts["sent"]
+
+
+def test_a_refused_transition_is_a_problem_with_its_reason(tmp_path: Path) -> None:
+    config = _run(tmp_path, [("actor-0", "ep000000", 0), ("actor-1", "ep000000", 0)])
+    rejected = tmp_path / "run" / "actors" / "actor-1" / "spool" / "rejected"
+    rejected.mkdir(parents=True)
+    (rejected / "1-000000000001.pb").write_bytes(wire.encode_transition(tr(1, episode="ep000000", actor="actor-1")))
+    (rejected / "1-000000000001.json").write_text(json.dumps({"reason": "error: Timeout"}))
+    ledger = Ledger(tmp_path / "run", ACTORS)
+    ledger.final("actor-0", _status(actions=1))
+    ledger.final("actor-1", _status(actions=2))
+    counts = ledger.reconcile(config)
+    assert "actor-1: 1 transition(s) refused by the replay server and set aside in its spool's rejected/ " \
+           "(first: error: Timeout)" in counts["problems"]
+    assert counts["per_actor"]["actor-1"]["refused"] == 1 and not counts["counts_agree"]
