@@ -111,6 +111,8 @@ class Child:
     restarts: deque[float] = field(default_factory=deque)  # monotonic times of recent restarts
     restart_at: float = 0.0
     last_exit: int | None = None
+    asked_to_stop: bool = False  # SIGTERM/SIGKILL sent by stop_rank or kill_all since the last start
+    unclean: str | None = None  # how its last run ended, if not cleanly (None: clean, running or never ran)
 
     @property
     def pid(self) -> int | None:
@@ -118,6 +120,16 @@ class Child:
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
+
+
+def unclean_end(code: int, asked: bool, restart: str) -> str | None:
+    """Why an exit was not clean, or None when it was: any non-zero code (a crash, or SIGKILL after the
+    stop timeout), and a service (restart "always") that exited 0 without being asked to stop."""
+    if code != 0:
+        return describe_exit(code) + ("" if asked else " before it was asked to stop")
+    if not asked and restart == "always":
+        return "exit code 0 before it was asked to stop"
+    return None
 
 
 def describe_exit(code: int) -> str:
@@ -170,6 +182,7 @@ class Supervisor:
                 out.close()  # the child holds its own descriptor
         child.state = "running"
         child.starts += 1
+        child.asked_to_stop, child.unclean = False, None
         log.info("started %s (pid %d)%s", name, child.proc.pid,
                  f", log {spec.log_path}" if spec.log_path else "")
         log.debug("%s: %s", name, " ".join(argv))
@@ -196,8 +209,14 @@ class Supervisor:
 
     def _exited(self, name: str, child: Child, code: int, now: float) -> None:
         child.last_exit = code
+        child.unclean = unclean_end(code, child.asked_to_stop, child.spec.restart)
         if self.stopping:
+            # Not restarted any more, but still reported: a child that dies while another rank is being
+            # stopped is found here (or by stop_rank's reaping), not lost because no one polled it.
             child.state = "stopped"
+            if child.unclean is not None and not child.asked_to_stop:
+                log.warning("%s ended while the fleet was stopping (%s; see %s)", name, child.unclean,
+                            child.spec.log_path or "its output")
             return
         if self._on_exit is not None:
             self._on_exit(name, code)
@@ -226,6 +245,20 @@ class Supervisor:
     def states(self) -> dict[str, str]:
         return {name: child.state for name, child in self.children.items()}
 
+    def unclean(self) -> dict[str, str]:
+        """Each child whose last run ended unclean, with how (see unclean_end); a crash that was followed
+        by a clean restart is not here (self.crashes counts it)."""
+        return {name: c.unclean for name, c in self.children.items() if c.unclean is not None}
+
+    def reap(self) -> None:
+        """Record the exit of every child that died since the last look, without restarting any."""
+        now = self._clock()
+        for name, child in self.children.items():
+            if child.state == "running" and child.proc is not None:
+                code = child.proc.poll()
+                if code is not None:
+                    self._exited(name, child, code, now)
+
     # ------------------------------------------------------------------------------------ stopping
     def signal(self, name: str, sig: int) -> bool:
         """Send sig to a running child's process group; False if it is not running."""
@@ -233,6 +266,8 @@ class Supervisor:
         if not child.alive():
             return False
         assert child.proc is not None
+        if sig in (signal.SIGTERM, signal.SIGKILL, signal.SIGINT):
+            child.asked_to_stop = True
         try:
             os.killpg(child.proc.pid, sig)
         except ProcessLookupError:  # exited between poll and kill
@@ -252,8 +287,10 @@ class Supervisor:
     def stop_rank(self, rank: int, hurry: Callable[[], bool] = lambda: False) -> None:
         """Stop the children of one stop_rank (SIGTERM, wait, SIGKILL); none of them is restarted after."""
         self.stopping = True  # from now on no child is restarted
+        self.reap()  # deaths since the last poll, e.g. while the previous rank was being stopped
         names = [n for n, c in self.children.items() if c.spec.stop_rank == rank]
         self._stop_group(names, hurry)
+        self.reap()
         for name in names:
             if self.children[name].state in ("running", "backoff"):
                 self.children[name].state = "stopped"
@@ -273,21 +310,27 @@ class Supervisor:
                 assert child.proc is not None
                 code = child.proc.poll()
                 if code is not None:
-                    child.last_exit = code
                     pending.discard(name)
                     level = logging.INFO if code == 0 else logging.WARNING
                     log.log(level, "%s stopped (%s)", name, describe_exit(code))
                 elif self._clock() - sent_at >= child.spec.stop_timeout_s or hurry():
                     log.warning("%s did not stop in time: SIGKILL", name)
                     self.signal(name, signal.SIGKILL)
-                    child.last_exit = child.proc.wait()
+                    code = child.proc.wait()
                     pending.discard(name)
+                if code is not None:
+                    child.last_exit = code
+                    child.unclean = unclean_end(code, True, child.spec.restart)
+                    child.state = "stopped"
             if pending:
                 time.sleep(0.05)
 
     def kill_all(self) -> None:
         """SIGKILL whatever still runs (last resort, e.g. the launcher itself is failing)."""
         self.stopping = True
+        self.reap()
         for name, child in self.children.items():
             if self.signal(name, signal.SIGKILL) and child.proc is not None:
                 child.last_exit = child.proc.wait()
+                child.unclean = unclean_end(child.last_exit, True, child.spec.restart)
+                child.state = "stopped"

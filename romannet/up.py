@@ -29,8 +29,9 @@ Stopping (Ctrl-C, SIGTERM, SIGHUP, or every actor reaching its share of --max-ac
 replay server (snapshot); each gets --stop-timeout seconds before SIGKILL. A second Ctrl-C kills the rest
 at once. Children sit in their own process groups and get SIGTERM if the launcher dies
 (romannet/supervisor.py), so none outlives it. Exit code 0 when every child stopped cleanly (exit 0),
-1 if the supervisor gave up on a crash-looping child or a child's last exit was not clean (a crash, or
-SIGKILL after the timeout), 2 for bad arguments.
+1 if the supervisor gave up on a crash-looping child or a child's last run did not end cleanly (a crash,
+also one while another group was being stopped; a service that exited before it was asked; SIGKILL after
+the timeout): summary.json's "unclean" names each such child and how it ended. 2 for bad arguments.
 """
 
 from __future__ import annotations
@@ -352,11 +353,12 @@ def run(args: argparse.Namespace) -> int:
         for h in console:
             h.removeFilter(clear)
     _summary(run_dir, progress.snapshot(), final, sup, outcome, time.monotonic() - started, ledger.start_total())
+    unclean = sup.unclean()
+    if unclean:
+        log.warning("not every child stopped cleanly: %s (see %s)",
+                    "; ".join(f"{n}: {how}" for n, how in unclean.items()), run_dir / "logs")
     logging.getLogger().removeHandler(file_handler)
     file_handler.close()
-    unclean = {n: c.last_exit for n, c in sup.children.items() if c.last_exit not in (None, 0)}
-    if unclean:
-        log.warning("not every child stopped cleanly: %s (see %s)", unclean, run_dir / "logs")
     return 1 if sup.gave_up or unclean else 0
 
 
@@ -424,6 +426,7 @@ def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, 
         "replay_duplicates": replay.get("duplicates") if replay else None,
         "restarts": sup.crashes, "gave_up": sup.gave_up,
         "exit_codes": {n: c.last_exit for n, c in sup.children.items()},
+        "unclean": sup.unclean(),  # child -> how its last run ended, for each that did not stop cleanly
         "actors": {aid: {k: s.get(k) for k in ("actions", "episodes", "completed_episodes", "picks",
                                                 "successful_picks", "weights_version", "explore_rate",
                                                 "sent", "acked", "spool_items", "last_done_reason")}
