@@ -38,7 +38,7 @@ from romannet.common.signals import stop_on_signals
 from romannet.common.weights_client import ZenohWeightsSource
 from romannet.common.zenoh_session import make_config, open_session
 
-from .service import ActorPaths, actor_section, run_actor
+from .service import ActorPaths, actor_section, read_next_episode, run_actor
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     acfg = resolve_actor_config(cfg, args)
     run_dir = Path(args.run_dir)
     paths = ActorPaths.of(run_dir, acfg)
+    read_next_episode(paths.state, paths.episodes)  # a damaged state.json: one line now, before any start-up
     write_toml(cfg, paths.root / "config.toml")  # what this actor ran with (also in every MCAP file)
     zenoh_config = make_config(args.zenoh_config, listen=args.listen or None, connect=args.connect or None)
     ws = cfg.workspace

@@ -154,14 +154,22 @@ def _deep_copy(data: dict[str, Any]) -> dict[str, Any]:
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
+    """The TOML file as a dict; anything that keeps it from being read is one ConfigError naming the file."""
     path = Path(path)
     try:
         with path.open("rb") as fh:
             return tomllib.load(fh)
     except FileNotFoundError:
         raise ConfigError("config file", str(path), "the file does not exist") from None
+    except IsADirectoryError:
+        raise ConfigError("config file", str(path), "is a directory, not a TOML file") from None
+    except UnicodeDecodeError as err:  # tomllib decodes UTF-8 itself: a binary file ends up here
+        raise ConfigError("config file", str(path), f"not valid TOML (not UTF-8 text: byte "
+                          f"0x{err.object[err.start]:02x} at offset {err.start})") from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError("config file", str(path), f"not valid TOML ({err})") from None
+    except OSError as err:  # no permission, an I/O error
+        raise ConfigError("config file", str(path), f"cannot be read ({err.strerror or err})") from None
 
 
 MAX_BASE_DEPTH = 8

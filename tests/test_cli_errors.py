@@ -1,0 +1,78 @@
+"""Bad input as a user meets it: the `romannet` command as a real process, real files, real ports held by
+a real socket. Each mistake must give one line on stderr naming the problem (and the file), exit 2, and
+never a traceback."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+# The installed entry point, as a user runs it (the module where the venv's script is not there).
+_SCRIPT = shutil.which("romannet", path=str(Path(sys.executable).parent))
+COMMAND = [_SCRIPT] if _SCRIPT else [sys.executable, "-m", "romannet.cli"]
+
+
+def romannet(*args: str, timeout_s: float = 60) -> subprocess.CompletedProcess:
+    env = dict(os.environ, ROMANNET_LOG_LEVEL="WARNING")
+    env.pop("ROMANNET_ZENOH_CONFIG", None)
+    return subprocess.run([*COMMAND, *args], capture_output=True, text=True, timeout=timeout_s, env=env, cwd=ROOT)
+
+
+def one_line_error(out: subprocess.CompletedProcess, *needles: str) -> str:
+    """The single stderr line of a refused command, after checking it says each needle."""
+    assert out.returncode == 2, (out.returncode, out.stderr)
+    assert "Traceback" not in out.stderr, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1, out.stderr
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    return lines[0]
+
+
+# ---------------------------------------------------------------------------------------- config files
+def test_config_that_is_a_directory(tmp_path: Path) -> None:
+    one_line_error(romannet("info", "--config", str(tmp_path)), str(tmp_path), "is a directory")
+
+
+def test_config_that_is_binary(tmp_path: Path) -> None:
+    path = tmp_path / "weights.toml"
+    path.write_bytes(bytes(range(256)) * 4)
+    one_line_error(romannet("info", "--config", str(path)), str(path), "not valid TOML", "not UTF-8")
+
+
+def test_config_with_a_bad_byte_inside_a_string(tmp_path: Path) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_bytes(b'[reward]\nname = "\xff"\n')
+    one_line_error(romannet("info", "--config", str(path)), str(path), "offset 17")
+
+
+# ---------------------------------------------------------------------------------------- actor state
+def _actor_dirs(tmp_path: Path) -> tuple[Path, Path]:
+    state = tmp_path / "run" / "actors" / "actor-0" / "state.json"
+    state.parent.mkdir(parents=True)
+    episodes = tmp_path / "run" / "episodes" / "actor-0"
+    episodes.mkdir(parents=True)
+    return state, episodes
+
+
+def test_damaged_actor_state_is_one_line_with_a_suggestion(tmp_path: Path) -> None:
+    state, episodes = _actor_dirs(tmp_path)
+    state.write_text('{"next_epi')  # cut off: a disk that lied
+    for index in (3, 11):
+        (episodes / f"ep{index:06d}.mcap").write_bytes(b"")
+    line = one_line_error(romannet("actor", "--run-dir", str(tmp_path / "run"), "--actor-id", "actor-0"),
+                          str(state), "not valid JSON", '{"next_episode": 12}')
+    assert line.startswith("romannet actor: error: ")
+    assert state.read_text() == '{"next_epi'  # left as it was for the user to look at
+
+
+def test_actor_state_with_a_wrong_value(tmp_path: Path) -> None:
+    state, _ = _actor_dirs(tmp_path)
+    state.write_text(json.dumps({"next_episode": "seven"}))
+    one_line_error(romannet("actor", "--run-dir", str(tmp_path / "run"), "--actor-id", "actor-0"),
+                   str(state), '"next_episode" must be a whole number')
