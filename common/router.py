@@ -21,6 +21,7 @@ from typing import Any
 import zenoh
 
 from .errors import RomannetError
+from .zenoh_session import open_zenoh
 
 log = logging.getLogger(__name__)
 
@@ -57,10 +58,7 @@ def _describe(link: Any) -> str:
 def run_router(config: zenoh.Config, stop: threading.Event,
                ready: Callable[[zenoh.Session], None] | None = None) -> None:
     """Run the router until stop is set; ready(session) is called once it listens."""
-    try:
-        session = zenoh.open(config)
-    except Exception as exc:  # a taken port, an unreadable certificate, ...: one clear line
-        raise RomannetError(f"the Zenoh router could not start: {exc}") from None
+    session = open_zenoh(config)  # a taken port, an unreadable certificate, ...: one ZenohOpenError line
     try:
         listeners = [
             session.info.declare_link_events_listener(

@@ -12,8 +12,10 @@ Pitfalls this module exists to avoid (see docs and design section 2):
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
+import re
 import socket
 import time
 from collections.abc import Iterator, Sequence
@@ -38,6 +40,10 @@ _RETRY_PAUSE_S = 0.05
 
 class ZenohQueryError(RomannetError):
     """A Zenoh query did not produce a usable reply."""
+
+
+class ZenohOpenError(RomannetError):
+    """A Zenoh session could not be opened: a port in use, an address not on this machine, a certificate."""
 
 
 class NoReplyError(ZenohQueryError, TimeoutError):
@@ -72,6 +78,31 @@ def parse_error(payload: bytes) -> tuple[str, str]:
     return reason, detail
 
 
+_RUST_LOCATION = re.compile(r"\s*at /\S+\.rs:\d+\.?")  # where in Zenoh's Rust sources: no help to a user
+_LISTEN_FAILURE = re.compile(r"listener bound to (?P<endpoint>\S+?):? \[\S+?: (?P<reason>[^\[\]]+?)"
+                             r" \(os error (?P<errno>\d+)\)")
+
+
+def describe_open_error(text: str) -> str:
+    """One line for a user from the text of the ZError that zenoh.open raised."""
+    m = _LISTEN_FAILURE.search(text)
+    if m is not None:
+        if int(m["errno"]) == errno.EADDRINUSE:
+            return (f"cannot listen on {m['endpoint']}: the port is already in use (another process listens "
+                    "there: stop it or choose another port)")
+        return f"cannot listen on {m['endpoint']}: {m['reason']}"
+    cleaned = " ".join(_RUST_LOCATION.sub("", text).split())
+    return f"Zenoh could not start: {cleaned}"
+
+
+def open_zenoh(config: zenoh.Config) -> zenoh.Session:
+    """zenoh.open, with its failures (a port in use, a missing certificate) as one ZenohOpenError line."""
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise ZenohOpenError(describe_open_error(str(exc))) from None
+
+
 def free_port(host: str = "127.0.0.1") -> int:
     """A TCP port that was free a moment ago (bind to port 0, read it, release it). Racy by nature;
     fine for tests and for `romannet up` on one machine."""
@@ -90,7 +121,8 @@ def make_config(config_file: str | Path | None = None, listen: Sequence[str] | N
     if config_file is not None:
         path = Path(config_file)
         if not path.is_file():
-            raise FileNotFoundError(f"zenoh config file {path} does not exist")
+            what = "is a directory" if path.is_dir() else "does not exist"
+            raise ZenohOpenError(f"zenoh config file {path} {what}")
         config = zenoh.Config.from_file(str(path))
     else:
         config = zenoh.Config.from_json5(DEFAULT_CONFIG_JSON5)
@@ -112,7 +144,7 @@ def open_session(config: zenoh.Config | None = None) -> Iterator[zenoh.Session]:
         if isinstance(endpoints, dict):  # zenoh's mode-dependent form
             endpoints = endpoints.get("client", [])
         log.info("connecting to the Zenoh router at %s", ", ".join(map(str, endpoints)) or "(no endpoint)")
-    session = zenoh.open(config)
+    session = open_zenoh(config)
     try:
         yield session
     finally:

@@ -33,7 +33,7 @@ from romannet.common import wire
 from romannet.common.errors import DecodeError
 from romannet.common.keys import RunKeys
 from romannet.common.wire_messages import InsertAckMsg, PriorityUpdateMsg, TransitionMsg
-from romannet.common.zenoh_session import format_error
+from romannet.common.zenoh_session import format_error, open_zenoh
 
 from .rejections import Rejections, classify_decode_error
 from .validate import check_transition
@@ -335,7 +335,7 @@ def run_replay_server(cfg: Any, directory: str | Path, zenoh_config: zenoh.Confi
     final: dict = {}
     store = ReplayStore(cfg, directory)  # takes the directory's lock
     try:
-        session = zenoh.open(zenoh_config)
+        session = open_zenoh(zenoh_config)  # a port in use: one ZenohOpenError line
     except BaseException:
         store.close()
         raise

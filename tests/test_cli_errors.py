@@ -7,9 +7,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 # The installed entry point, as a user runs it (the module where the venv's script is not there).
@@ -76,3 +80,45 @@ def test_actor_state_with_a_wrong_value(tmp_path: Path) -> None:
     state.write_text(json.dumps({"next_episode": "seven"}))
     one_line_error(romannet("actor", "--run-dir", str(tmp_path / "run"), "--actor-id", "actor-0"),
                    str(state), '"next_episode" must be a whole number')
+
+
+# ---------------------------------------------------------------------------------------- ports in use
+@pytest.fixture
+def held_port() -> Iterator[int]:
+    """A loopback TCP port that a real socket is listening on for the whole test."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        yield int(s.getsockname()[1])
+
+
+def test_replay_listen_on_a_port_in_use(tmp_path: Path, held_port: int) -> None:
+    endpoint = f"tcp/127.0.0.1:{held_port}"
+    line = one_line_error(romannet("replay", "--dir", str(tmp_path / "replay"), "--listen", endpoint),
+                          f"cannot listen on {endpoint}", "already in use")
+    assert line.startswith("romannet replay: error: ")
+
+
+def test_router_listen_on_a_port_in_use(held_port: int) -> None:
+    one_line_error(romannet("router", "--listen", f"tcp/127.0.0.1:{held_port}"), "already in use")
+
+
+def test_mcap_play_foxglove_on_a_port_in_use(tmp_path: Path, held_port: int) -> None:
+    from _episodes import record_episode
+
+    episode = tmp_path / "ep000000.mcap"
+    record_episode(episode, 2)
+    one_line_error(romannet("mcap", "play", str(episode), "--foxglove", str(held_port)),
+                   f"cannot serve Foxglove on 127.0.0.1:{held_port}", "already in use")
+
+
+def test_zenoh_open_errors_read_as_one_line() -> None:
+    from romannet.common.zenoh_session import describe_open_error
+
+    rust = " at /root/.cargo/git/checkouts/zenoh/io/zenoh-links/src/unicast.rs:338."
+    assert describe_open_error("Can not create a new TCP listener bound to tcp/10.9.9.9:7447: [10.9.9.9:7447: "
+                               "Cannot assign requested address (os error 99)" + rust + "]" + rust) == \
+        "cannot listen on tcp/10.9.9.9:7447: Cannot assign requested address"
+    assert describe_open_error("Cannot create a new TLS listener on 127.0.0.1:7447. Missing TLS private key."
+                               + rust + rust) == \
+        "Zenoh could not start: Cannot create a new TLS listener on 127.0.0.1:7447. Missing TLS private key."

@@ -23,6 +23,7 @@ from typing import Any, Protocol
 import zenoh
 
 from romannet.common.episode_file import ChannelInfo, RecordedMessage
+from romannet.common.errors import RomannetError
 from romannet.common.keys import RunKeys
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,14 @@ class _Subscriptions:
         log.debug("Foxglove client %s unsubscribed from %s", client.id, channel.topic)
 
 
+def foxglove_start_error(host: str, port: int, text: str) -> str:
+    """One line for a Foxglove server that could not start (text: the SDK's error)."""
+    if "Address already in use" in text:
+        return (f"cannot serve Foxglove on {host}:{port}: the port is already in use (another process listens "
+                "there: stop it or choose another --foxglove port)")
+    return f"cannot serve Foxglove on {host}:{port}: {text.removeprefix('FoxgloveError: ')}"
+
+
 class FoxgloveSink:
     """A Foxglove WebSocket server on host:port (port 0: any free port, see .port)."""
 
@@ -62,8 +71,11 @@ class FoxgloveSink:
 
         self._context = foxglove.Context()
         self._listener = _Subscriptions()
-        self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
-                                             capabilities=[Capability.Time], server_listener=self._listener)
+        try:
+            self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
+                                                 capabilities=[Capability.Time], server_listener=self._listener)
+        except RuntimeError as exc:  # the SDK's FoxgloveError, e.g. "Failed to bind port: Address already in use"
+            raise RomannetError(foxglove_start_error(host, port, str(exc))) from None
         self._channels = {}
         for c in channels:
             schema = foxglove.Schema(name=c.schema_name, encoding=c.schema_encoding, data=c.schema_data)
