@@ -6,6 +6,7 @@ Each verb's module is imported only when that verb runs, so `romannet --help` st
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 import logging
 import sys
@@ -237,6 +238,81 @@ def cmd_up(args: argparse.Namespace) -> int:
     return run(args)
 
 
+# Each benchmark: (one line for the list, what it measures for its --help, its example, the options it reads
+# besides --json).
+BENCHMARKS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
+    "inference": ("the actor's decision latency against baselines",
+                  "The actor's decision latency (forward passes of the three nets and the choice of action) "
+                  "against the naive eager fp32 baselines.", "romannet bench inference --json", ("seed", "repeats")),
+    "replay": ("durable inserts/s, sample latency, recovery time",
+               "The replay server over loopback Zenoh: durable inserts per second, sample latency, and the time "
+               "to recover --inserts transitions from its log.",
+               "romannet bench replay --json --inserts 2000 --repeats 200", ("seed", "repeats", "inserts")),
+    "sim": ("simulator actions/s per task, ms per render, heightmap and primitive",
+            "The simulator: actions per second per task, and milliseconds per render, heightmap and primitive, "
+            "for each robot mode.", "romannet bench sim --json --actions 10 --robots arm,gripper",
+            ("seed", "actions", "robots")),
+    "learner": ("transitions trained/s per batch size",
+                "Transitions trained per second for each batch size, against the naive eager fp32 step.",
+                "romannet bench learner --json --batch-sizes 1,4,8 --repeats 10",
+                ("seed", "repeats", "batch_sizes", "device")),
+    "system": ("fleet actions/s, weights latency, where actor time goes",
+               "The whole fleet (`romannet up`): actions per second with 1 and 2 gripper actors, weights "
+               "latency to 1 and 8 actors, and the share of actor time in simulation, inference, encoding and "
+               "transport.", "romannet bench system --json --actions 30", ("seed", "repeats", "actions")),
+    "pick-geometry": ("which picks of a lone cube each hand holds",
+                      "Which picks of a lone cube each simulated hand holds, by offset from the cube's centre "
+                      "and by angle.", "romannet bench pick-geometry --hands panda,rg2 --cube-sizes 0.05,0.04",
+                      ("seed", "robots", "hands", "cube_sizes")),
+    "faults": ("a secure multi-host fleet through kill -9, a cut link and an intruder (root)",
+               "A secure fleet on five Linux network-namespace hosts (a router; the replay server and the "
+               "learner; two actors; an operator), with the configs `romannet deploy certs` writes: mutual TLS, "
+               "access control denying by default. During one short training run it tries an intruder with "
+               "actor-0's certificate and clients with no certificate or another CA's, kills the replay "
+               "server, the learner (restarted with --resume) and an actor with SIGKILL, and cuts one actor's "
+               "link for 10 s. It prints each fault's recovery time, each access-control check, and the "
+               "transitions sent, acknowledged, stored, lost and duplicated. Needs root (ip netns) and about "
+               "a minute. Exit 1 if a transition is lost or duplicated, something is allowed that must be "
+               "denied, or a process does not stop cleanly.", "sudo romannet bench faults --json", ()),
+}
+
+
+def add_bench_arguments(p: argparse.ArgumentParser) -> None:
+    """One sub-command per benchmark, each with its description, example and only the options it reads."""
+    import textwrap
+
+    sub = p.add_subparsers(dest="what", required=True, metavar="<benchmark>")
+    for name, (short, what, example, options) in BENCHMARKS.items():
+        q = sub.add_parser(name, help=short, description=textwrap.fill(what, 100),
+                           epilog=f"example:\n  {example}", formatter_class=argparse.RawDescriptionHelpFormatter)
+        q.add_argument("--json", action="store_true", help="print compact JSON on one line")
+        # cmd_bench reads every field; a benchmark without the option gets its default.
+        q.set_defaults(seed=0, repeats=None, inserts=2000, actions=10, robots="arm,gripper", hands="panda,rg2",
+                       cube_sizes="0.05,0.04", batch_sizes="1,4,8", device="cpu")
+        if "seed" in options:
+            q.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+        if "repeats" in options:
+            q.add_argument("--repeats", type=int, default=None,
+                           help="timed repeats per measurement (median reported); default: the benchmark's own")
+        if "inserts" in options:
+            q.add_argument("--inserts", type=int, default=2000, help="transitions inserted (and recovered)")
+        if "actions" in options:
+            q.add_argument("--actions", type=int, default=10,
+                           help="actions per task and policy" if name == "sim" else "actions per actor")
+        if "robots" in options:
+            q.add_argument("--robots", default="arm,gripper",
+                           help="comma-separated robot modes (arm, gripper)" if name == "sim"
+                           else "the robot mode (arm or gripper; the last of a comma-separated list)")
+        if "hands" in options:
+            q.add_argument("--hands", default="panda,rg2", help="comma-separated sim.hand values")
+        if "cube_sizes" in options:
+            q.add_argument("--cube-sizes", default="0.05,0.04", help="comma-separated cube edges (m)")
+        if "batch_sizes" in options:
+            q.add_argument("--batch-sizes", default="1,4,8", help="comma-separated transitions per update")
+        if "device" in options:
+            q.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (when there is a GPU)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="romannet",
@@ -265,30 +341,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _add_config_args(p)
 
-    p = verb("bench", "run a benchmark and print one JSON object (results go in docs/benchmarks.md)", cmd_bench)
-    p.add_argument("what", choices=["inference", "replay", "sim", "learner", "system", "pick-geometry", "faults"],
-                   help="inference: the actor's decision latency vs baselines; "
-                        "replay: durable inserts/s, sample latency, recovery time over loopback Zenoh; "
-                        "sim: simulator actions/s per task, ms per render, heightmap and primitive; "
-                        "learner: transitions trained/s per batch size vs the naive eager fp32 step; "
-                        "system: fleet actions/s for 1 and 2 gripper actors (`romannet up`), weights latency "
-                        "to 1 and 8 actors, share of actor time in sim/inference/encoding/transport; "
-                        "pick-geometry: which picks of a lone cube each hand holds, by offset and angle; "
-                        "faults: a secure fleet on 5 network-namespace hosts through kill -9 of each service, a "
-                        "cut link and an intruder: transitions lost and duplicated (must be 0), recovery times "
-                        "(root; exit 1 if anything is lost or allowed that must not be)")
-    p.add_argument("--json", action="store_true", help="print compact JSON on one line")
-    p.add_argument("--repeats", type=int, default=None,
-                   help="timed repeats per measurement (median reported); default: each benchmark's own")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--inserts", type=int, default=2000, help="replay: transitions inserted (and recovered)")
-    p.add_argument("--actions", type=int, default=10, help="sim: actions per task and policy; system: per actor")
-    p.add_argument("--robots", default="arm,gripper", help="sim: comma-separated robot modes (arm, gripper); "
-                   "pick-geometry: the last one")
-    p.add_argument("--hands", default="panda,rg2", help="pick-geometry: comma-separated sim.hand values")
-    p.add_argument("--cube-sizes", default="0.05,0.04", help="pick-geometry: comma-separated cube edges (m)")
-    p.add_argument("--batch-sizes", default="1,4,8", help="learner: comma-separated transitions per update")
-    p.add_argument("--device", default="cpu", help="learner: torch device, e.g. cpu or cuda (when there is a GPU)")
+    p = verb("bench", "run a benchmark and print one JSON object (results go in docs/benchmarks.md); "
+             "`romannet bench <benchmark> --help` describes one", cmd_bench)
+    add_bench_arguments(p)
 
     p = verb("sim", "simulator tools: `snapshot` writes the camera image and both heightmaps as one PNG", cmd_sim)
     p.add_argument("tool", choices=["snapshot"])
@@ -419,9 +474,40 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def chosen_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The (sub-)parser of the verb and tool the user named, e.g. `deploy certs`'s: its usage is the one to show."""
+    while True:
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        name = getattr(args, subs[0].dest, None) if subs else None
+        if not subs or name not in subs[0].choices:
+            return parser
+        parser = subs[0].choices[name]
+
+
+def unknown_args_message(extras: list[str], options: list[str]) -> str:
+    """'unrecognized arguments: --lisen x; did you mean --listen?' (the hint for the near misses only)."""
+    flags = [a.split("=", 1)[0] for a in extras if a.startswith("--")]
+    meant = {f: close[0] for f in flags if (close := difflib.get_close_matches(f, options, n=1, cutoff=0.6))}
+    text = f"unrecognized arguments: {' '.join(extras)}"
+    if len(meant) == 1 and len(flags) == 1:
+        return f"{text}; did you mean {next(iter(meant.values()))}?"
+    return text + "".join(f"; {f}: did you mean {m}?" for f, m in meant.items())
+
+
+def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """parse_args, except that arguments the verb does not know are reported with the verb's own usage
+    (argparse would show the top-level one) and, for a near-miss flag, the flag that was meant."""
+    args, extras = parser.parse_known_args(argv)
+    if extras:
+        where = chosen_parser(parser, args)
+        options = [o for a in where._actions for o in a.option_strings if o.startswith("--")]
+        where.error(unknown_args_message(extras, options))
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parse_args(parser, argv)
     try:
         setup_logging(args.log_level)
         return args.func(args)

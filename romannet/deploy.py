@@ -16,6 +16,7 @@ import logging
 import os
 import socket
 import sys
+import textwrap
 import threading
 import time
 from pathlib import Path
@@ -27,10 +28,15 @@ ENV_ZENOH_CONFIG = "ROMANNET_ZENOH_CONFIG"
 
 ROUTER_EXAMPLE = ("romannet router --zenoh-config deploy/zenoh/router.json5\n"
                   "  romannet router --zenoh-config site/zenoh/router.json5   # after `romannet deploy certs site`")
-DEPLOY_EXAMPLE = ("romannet deploy certs site --actors 2 --router-host 10.0.0.2 --install-dir /etc/romannet\n"
-                  "  romannet deploy configs site/zenoh --actors 2 --router-host 10.0.0.2   # plain TCP\n"
-                  "  romannet deploy check --zenoh-config /etc/romannet/zenoh/operator.json5 --run-id run-1 "
-                  "--expect-actors 2")
+CERTS_EXAMPLE = ("romannet deploy certs site --actors 2 --router-host 10.0.0.2 --install-dir /etc/romannet\n"
+                 "  romannet deploy certs site --actors 3 --router-host 10.0.0.2 --install-dir /etc/romannet"
+                 "   # add actor-2")
+CONFIGS_EXAMPLE = ("romannet deploy configs site/zenoh --actors 2 --router-host 10.0.0.2   # plain TCP\n"
+                   "  romannet deploy configs site/zenoh --actor-ids actor-0,actor-2 --router-host 10.0.0.2 "
+                   "--pki-dir /etc/romannet/pki   # secure, actor-1 revoked")
+CHECK_EXAMPLE = ("romannet deploy check --zenoh-config /etc/romannet/zenoh/operator.json5 --run-id run-1 "
+                 "--expect-actors 2")
+DEPLOY_EXAMPLE = "\n  ".join(e.split("\n")[0] for e in (CERTS_EXAMPLE, CONFIGS_EXAMPLE, CHECK_EXAMPLE))
 
 
 def zenoh_config_default() -> str | None:
@@ -75,21 +81,40 @@ def add_deploy_arguments(p: argparse.ArgumentParser) -> None:
                        "the client configs, all go in the router certificate); default: this host's name")
         q.add_argument("--port", type=int, default=7447, help="the router's port (default 7447)")
 
-    q = sub.add_parser("certs", help="a CA and certificates for router, replay, learner, operator and each "
-                       "actor (OUTDIR/pki), and the secure-profile Zenoh configs that use them (OUTDIR/zenoh)")
+    def tool(name: str, help_text: str, description: str, example: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help_text, description=textwrap.fill(description, 100),
+                              epilog=f"example:\n  {example}", formatter_class=argparse.RawDescriptionHelpFormatter)
+
+    q = tool("certs", "a CA and certificates for router, replay, learner, operator and each actor (OUTDIR/pki), "
+             "and the secure-profile Zenoh configs that use them (OUTDIR/zenoh)",
+             "Writes a site for the secure profile: OUTDIR/pki/ holds a CA and a certificate and key for the "
+             "router, replay, learner, operator and each actor (its common name is its identity in the "
+             "router's access control), OUTDIR/zenoh/ one Zenoh config per role (mutual TLS; the router's "
+             "denies by default and allows each identity its role's keys only). Run it again to add actors: "
+             "the CA and existing certificates are kept. It prints which files go to which machine; keep "
+             "pki/ca.key off the fleet (docs/deploy.md).", CERTS_EXAMPLE)
     site_args(q)
     q.add_argument("--install-dir", metavar="DIR", help="where OUTDIR will be on the machines (the paths in "
                    "the configs); default: OUTDIR itself")
     q.add_argument("--days", type=int, default=825, help="validity of the issued certificates")
     q.add_argument("--force", action="store_true", help="re-issue certificates that exist (the CA is kept)")
 
-    q = sub.add_parser("configs", help="Zenoh configs only: the plain TCP profile, or with --pki-dir the secure "
-                       "one (regenerate the router's access control after adding an actor)")
+    q = tool("configs", "Zenoh configs only: the plain TCP profile, or with --pki-dir the secure one (regenerate "
+             "the router's access control after adding or revoking an actor)",
+             "Writes one Zenoh config per role (router, replay, learner, operator, each actor) into OUTDIR: "
+             "the plain TCP profile for a network you trust, or with --pki-dir the secure one for "
+             "certificates that `deploy certs` made. The router's access control lists exactly the actors "
+             "named here, so this also rewrites it after adding an actor or revoking one (docs/deploy.md).",
+             CONFIGS_EXAMPLE)
     site_args(q)
     q.add_argument("--pki-dir", metavar="DIR", help="secure profile: where the certificates are on the machines")
 
-    q = sub.add_parser("check", help="connect with a config (the operator's) and report the router, the replay "
-                       "server, the learner and the actors of a run; exit 1 if something is missing")
+    q = tool("check", "connect with a config (the operator's) and report the router, the replay server, the "
+             "learner and the actors of a run; exit 1 if something is missing",
+             "Connects through the router with a Zenoh config (the operator's, in the secure profile) and "
+             "reports what it finds of one run: the router, the replay server's liveliness and stats, the "
+             "learner's liveliness and each live actor. Exit 0 when all are there (at least --expect-actors "
+             "actors), 1 otherwise, naming what is missing.", CHECK_EXAMPLE)
     add_zenoh_config_arg(q)
     q.add_argument("--run-id", required=True, help="the run's id (its config's run_id)")
     q.add_argument("--expect-actors", type=int, default=1, metavar="N", help="fail with fewer live actors")

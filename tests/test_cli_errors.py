@@ -4,6 +4,7 @@ never a traceback."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import shutil
@@ -122,3 +123,55 @@ def test_zenoh_open_errors_read_as_one_line() -> None:
     assert describe_open_error("Cannot create a new TLS listener on 127.0.0.1:7447. Missing TLS private key."
                                + rust + rust) == \
         "Zenoh could not start: Cannot create a new TLS listener on 127.0.0.1:7447. Missing TLS private key."
+
+
+# ---------------------------------------------------------------------------------------- usage and help
+def _usage_error(out: subprocess.CompletedProcess) -> tuple[str, str]:
+    """(usage text, the error line) of an argparse refusal."""
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    *usage, error = out.stderr.strip().splitlines()
+    return "\n".join(usage), error
+
+
+def test_bad_flag_after_a_verb_shows_the_verbs_usage_and_the_flag_meant(tmp_path: Path) -> None:
+    usage, error = _usage_error(romannet("replay", "--dir", str(tmp_path), "--lisen", "tcp/127.0.0.1:7447"))
+    assert usage.startswith("usage: romannet replay ") and "--listen ENDPOINT" in usage
+    assert error == "romannet replay: error: unrecognized arguments: --lisen tcp/127.0.0.1:7447; did you mean --listen?"
+
+
+def test_bad_flag_of_a_sub_verb_shows_that_sub_verbs_usage(tmp_path: Path) -> None:
+    usage, error = _usage_error(romannet("deploy", "certs", str(tmp_path), "--rooter-host", "h", "--dayz=3"))
+    assert usage.startswith("usage: romannet deploy certs ")
+    assert error.startswith("romannet deploy certs: error: unrecognized arguments: --rooter-host h --dayz=3")
+    assert "--rooter-host: did you mean --router-host?" in error and "--dayz: did you mean --days?" in error
+
+
+def test_unknown_argument_without_a_near_flag_gets_no_guess() -> None:
+    usage, error = _usage_error(romannet("info", "--zzzzzz"))
+    assert usage.startswith("usage: romannet info ")
+    assert error == "romannet info: error: unrecognized arguments: --zzzzzz"
+
+
+def test_bench_faults_help_describes_the_faults_benchmark() -> None:
+    out = romannet("bench", "faults", "--help")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("usage: romannet bench faults")
+    for words in ("network-namespace hosts", "SIGKILL", "lost and duplicated", "root", "sudo romannet bench faults"):
+        assert words in " ".join(out.stdout.split()), words
+    assert "--inserts" not in out.stdout  # only the options this benchmark reads
+
+
+def test_every_benchmark_and_deploy_tool_has_a_description_and_an_example() -> None:
+    # In-process (the parsers `romannet` builds): one process per sub-command would cost seconds each.
+    from romannet.cli import build_parser, chosen_parser
+
+    parser = build_parser()
+    tools = [("bench", b) for b in ("inference", "replay", "sim", "learner", "system", "pick-geometry", "faults")]
+    tools += [("deploy", t) for t in ("certs", "configs", "check")]
+    for verb, tool in tools:
+        args = argparse.Namespace(verb=verb, what=tool, tool=tool)
+        text = chosen_parser(parser, args).format_help()
+        assert text.startswith(f"usage: romannet {verb} {tool}"), text
+        description = text.split("\n\n")[1]
+        assert len(description.split()) > 10, (tool, description)  # a paragraph, not the usage again
+        assert f"example:\n  {'sudo ' if tool == 'faults' else ''}romannet {verb} {tool} " in text, text
