@@ -54,8 +54,8 @@ from .progress import (
     ClearLineFilter,
     FleetProgress,
     FleetSnapshot,
-    ProgressDisplay,
-    format_line,
+    Progress,
+    fleet_fields,
     read_actor_statuses,
 )
 from .rundir import prepare_run
@@ -293,7 +293,8 @@ def run(args: argparse.Namespace) -> int:
                  "train on", run_dir.name, ledger.start_total(), args.max_actions)
         return 0
     file_handler = _attach_log_file(run_dir / "launcher.log")
-    display = ProgressDisplay(log_every_s=args.progress_every)
+    display = Progress("up", total=args.max_actions or None, unit="actions", log_every_s=args.progress_every,
+                       redraw_s=1.0)
     console = [h for h in logging.getLogger().handlers if isinstance(h, logging.StreamHandler)
                and not isinstance(h, logging.FileHandler)]
     clear = ClearLineFilter(display)
@@ -336,7 +337,7 @@ def run(args: argparse.Namespace) -> int:
                 keys = RunKeys(cfg.run_id)
                 ready = {"replay": lambda: client.wait_until_ready(0.5),
                          "learner": lambda: wait_for_liveliness(session, keys.learner_alive, 0.5)}
-                outcome = _supervise(sup, ready, signals, progress, display, args.max_actions)
+                outcome = _supervise(sup, ready, signals, progress, display)
                 display.clear()
                 sup.stop_rank(ACTOR_RANK, hurry=lambda: signals.count > 1)
                 sup.stop_rank(LEARNER_RANK, hurry=lambda: signals.count > 1)
@@ -363,7 +364,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _supervise(sup: Supervisor, ready: dict[str, Callable[[], bool]], signals: _Signals,
-               progress: FleetProgress, display: ProgressDisplay, max_actions: int) -> str:
+               progress: FleetProgress, display: Progress) -> str:
     """Start the fleet and watch it until it is done, asked to stop, or a child crash-loops."""
     # In stages, each waiting (bounded) for the previous one's liveliness token: the replay, the learner,
     # then the actors. All of them cope with a peer that is not there yet, but actors that start first
@@ -395,7 +396,8 @@ def _supervise(sup: Supervisor, ready: dict[str, Callable[[], bool]], signals: _
             return "max_actions_reached"
         now = time.monotonic()
         if now >= next_draw:
-            display.show(format_line(progress.snapshot(), max_actions or None))
+            snap = progress.snapshot()
+            display.update(snap.actions, fleet_fields(snap))
             next_draw = now + 1.0
         time.sleep(0.2)
 

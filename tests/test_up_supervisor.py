@@ -16,7 +16,15 @@ from pathlib import Path
 
 import pytest
 
-from romannet.progress import ActorLedger, FleetSnapshot, MovingRate, format_line, read_last_metrics
+from romannet.progress import (
+    ActorLedger,
+    FleetSnapshot,
+    MovingRate,
+    Reading,
+    fleet_fields,
+    plain_line,
+    read_last_metrics,
+)
 from romannet.supervisor import ChildSpec, RestartPolicy, Supervisor
 from romannet.up import actor_shares, split_actions
 
@@ -214,8 +222,8 @@ def test_progress_line_tells_a_paced_actor_from_a_paused_one() -> None:
         "a3": {"weights_version": 3, "paused": True, "pause_kind": "waiting"},
         "a4": {"weights_version": 3, "paused": True, "pause_kind": "robot"},
         "a5": {"weights_version": 1, "paused": True}})  # a status from before pause_kind existed
-    line = format_line(snap, max_actions=100)
-    assert "actions 12/100" in line
+    line = plain_line(Reading("up", snap.actions, 100, "actions", fields=tuple(fleet_fields(snap))))
+    assert "actions 12/100" in line and "PAUSED a1 a4 a5" in line
     assert "a0:v3 paced a1:v3 PAUSED a2:v2 a3:v3 waiting a4:v3 PAUSED a5:v1 PAUSED" in line
 
 

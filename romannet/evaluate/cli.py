@@ -240,8 +240,10 @@ def _header_policy(args: argparse.Namespace, plan: CheckpointPlan) -> dict[str, 
 
 def evaluate(args: argparse.Namespace, plan: CheckpointPlan, out_dir: Path) -> dict[str, Any]:
     """Run one checkpoint's plan into out_dir; write and print its report; return it."""
-    from .metrics import completed
-    from .protocol import Progress, execute
+    from romannet.progress import Progress
+
+    from .metrics import RunLog, completed
+    from .protocol import execute, run_fields
     from .report import build_report, markdown, write_outputs
     from .runner import EvalSetup
 
@@ -253,11 +255,19 @@ def evaluate(args: argparse.Namespace, plan: CheckpointPlan, out_dir: Path) -> d
     protocol = effective_protocol(args)
     setup = EvalSetup(config_toml=plan.config_toml, checkpoint=str(plan.ckpt or ""), protocol=protocol,
                       threads=max(1, cores // workers), policy=plan.policy)
-    progress = Progress(len(plan.specs))
     log.info("evaluating %s on %s (%s protocol): %d runs on %d worker(s), output in %s", plan.ckpt or plan.policy,
              plan.task, protocol, len(plan.specs), workers, out_dir)
     start = time.monotonic()
-    runs = execute(setup, plan.specs, workers, journal, on_run=lambda r: progress.update(r, completed(r)))
+    done = {"runs": 0, "completed": 0}
+
+    def on_run(run: RunLog) -> None:
+        done["runs"] += 1
+        done["completed"] += int(completed(run))
+        progress.update(done["runs"], run_fields(done["completed"], run),
+                        force=done["runs"] == len(plan.specs))
+
+    with Progress("eval", total=len(plan.specs), unit="runs", initial=0, window_s=600.0) as progress:
+        runs = execute(setup, plan.specs, workers, journal, on_run=on_run)
     header = {"checkpoint": str(plan.ckpt) if plan.ckpt else None, "updates": plan.state.get("updates"),
               **_header_policy(args, plan), "task": plan.task, "protocol": protocol, "runs_per_case": args.runs,
               "base_seed": args.seed,

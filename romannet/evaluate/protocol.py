@@ -14,13 +14,10 @@ import json
 import logging
 import multiprocessing
 import os
-import sys
-import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict
 from pathlib import Path
-from typing import TextIO
 
 from .metrics import RunLog, StepLog
 from .runner import EvalSetup, RunSpec, Worker, init_worker, run_in_worker
@@ -87,32 +84,9 @@ def read_journal(path: Path) -> list[RunLog]:
     return runs
 
 
-class Progress:
-    """A one-line progress bar on a terminal, a log line every `log_every_s` otherwise."""
-
-    def __init__(self, total: int, stream: TextIO | None = None, log_every_s: float = 30.0):
-        self.total, self.done, self.completed = total, 0, 0
-        self.stream = stream or sys.stderr
-        self.tty = self.stream.isatty()
-        self.start = time.monotonic()
-        self.log_every_s, self._next_log = log_every_s, time.monotonic() + log_every_s
-
-    def update(self, run: RunLog, completed: bool) -> None:
-        self.done += 1
-        self.completed += int(completed)
-        elapsed = time.monotonic() - self.start
-        eta = elapsed / self.done * (self.total - self.done)
-        width = 30
-        filled = int(width * self.done / self.total)
-        line = (f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} runs, "
-                f"{self.completed} completed, last {run.case} seed {run.seed}: {run.end_reason} in "
-                f"{run.actions} actions | {elapsed:.0f} s, eta {eta:.0f} s")
-        if self.tty:
-            self.stream.write("\r\033[K" + line + ("\n" if self.done == self.total else ""))
-            self.stream.flush()
-        elif time.monotonic() >= self._next_log or self.done == self.total:
-            log.info("%s", line)
-            self._next_log = time.monotonic() + self.log_every_s
+def run_fields(completed: int, last: RunLog) -> list[str]:
+    """The evaluation's progress fields, most important first."""
+    return [f"{completed} completed", f"last {last.case} seed {last.seed}: {last.end_reason} in {last.actions} actions"]
 
 
 def execute(setup: EvalSetup, specs: Sequence[RunSpec], workers: int, journal: Path,

@@ -172,9 +172,9 @@ def run_export(args: argparse.Namespace) -> int:
         raise RomannetError(f"--fps {args.fps} / --size {args.size}: use fps > 0 and a size of 64..4096 px")
     sink = FrameSink(Path(args.video) if args.video else None, Path(args.frames) if args.frames else None, args.fps)
     try:
-        with ProgressBar("export") as bar:
+        with ProgressBar("export", "frames") as bar:
             frames = export_episode(args.file, sink, args.size,
-                                    lambda fraction, n: bar.update(fraction, f"{n} frames"))
+                                    lambda fraction, n: bar.update(fraction, f"{n} frames", count=n))
     finally:
         sink.close()
     where = " and ".join(str(p) for p in (args.video, args.frames) if p)

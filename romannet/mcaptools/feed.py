@@ -84,9 +84,9 @@ def run_feed(args: argparse.Namespace) -> int:
             raise RomannetError(f"no replay server for run {run_id!r} answered within {args.wait:g} s (is "
                                 "`romannet replay` running, and do --connect and --run-id match it?)")
         log.info("feeding %d file(s) to the replay server of run %s", len(paths), run_id)
-        with ProgressBar("feed") as bar:
+        with ProgressBar("feed", "transitions") as bar:
             report = feed_files(client, paths, opts, stop=stop, on_progress=lambda p: bar.update(
-                p.done_bytes / max(p.total_bytes, 1), _detail(p)))
+                p.done_bytes / max(p.total_bytes, 1), _detail(p), count=p.report.transitions))
         try:
             replay_size: int | None = int(client.stats(timeout_s=5.0)["size"])
         except (TimeoutError, RomannetError, KeyError, ValueError):

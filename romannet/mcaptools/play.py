@@ -55,7 +55,7 @@ def delay_s(previous_ns: int | None, t_ns: int, opts: PlayOptions) -> float:
 def play(path: str, sinks: list[Sink], opts: PlayOptions, stop: threading.Event, total: int = 0) -> int:
     """Send every message of the episode at `path` to each sink; returns the number of messages sent."""
     sent = 0
-    with ProgressBar("play") as bar:
+    with ProgressBar("play", "messages") as bar:
         while True:
             start, target_s, previous, first = time.monotonic(), 0.0, None, None
             for msg in EpisodeReader(path).messages():
@@ -70,7 +70,7 @@ def play(path: str, sinks: list[Sink], opts: PlayOptions, stop: threading.Event,
                 sent += 1
                 done = (sent - 1) % max(total, 1) + 1
                 bar.update(done / max(total, 1), f"{done}/{total} messages, recorded t = "
-                           f"{(msg.log_time_ns - first) / 1e9:.1f} s")
+                           f"{(msg.log_time_ns - first) / 1e9:.1f} s", count=sent)
             if not opts.loop:
                 return sent
 

@@ -63,7 +63,7 @@ def run_rescore(args: argparse.Namespace) -> int:
             if not client.wait_until_ready(args.wait):
                 raise RomannetError(f"no replay server for run {run_id!r} answered within {args.wait:g} s")
         opts = FeedOptions(insert_timeout_s=args.timeout, give_up_after_s=args.give_up_after, window=args.window)
-        with ProgressBar("rescore") as bar:
+        with ProgressBar("rescore", "files") as bar:
             for index, path in enumerate(paths):
                 if stop.is_set():
                     break
@@ -76,7 +76,8 @@ def run_rescore(args: argparse.Namespace) -> int:
                 if client is not None:
                     feed_stream(client, ((data, 0) for data in result.transitions), report, opts, stop=stop)
                 results.append(result)
-                bar.update((index + 1) / len(paths), f"{index + 1}/{len(paths)} files, {report.accepted} fed")
+                bar.update((index + 1) / len(paths), f"{index + 1}/{len(paths)} files, {report.accepted} fed",
+                           count=index + 1)
     if args.json:
         sys.stdout.write(json.dumps({"files": [r.as_dict() for r in results], "errors": errors,
                                      "feed": report.as_dict() if args.feed else None}) + "\n")

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 from romannet.common.errors import RomannetError
 
 if TYPE_CHECKING:
-    from romannet.progress import ProgressDisplay
+    from romannet.progress import Progress
 
     from .execute import Pace, StopRequests
     from .plan import RunJob, SweepPlan
@@ -173,7 +173,7 @@ def _check_not_running(out: Path) -> None:
 class Sweep:
     """Trains, evaluates and tabulates a checked plan, skipping what is already on disk."""
 
-    def __init__(self, plan: SweepPlan, stops: StopRequests, display: ProgressDisplay):
+    def __init__(self, plan: SweepPlan, stops: StopRequests, display: Progress):
         from .state import finished_report, run_actions
 
         self.plan, self.stops, self.display = plan, stops, display
@@ -202,7 +202,7 @@ class Sweep:
     def train(self, only: str | None = None) -> int | None:
         """Every run (or the one named `only`) to --max-actions, one after another; an exit code to stop with,
         or None when all are done."""
-        from .execute import run_child, training_line
+        from .execute import run_child, training_eta
         from .state import RunState, run_actions, run_state
 
         for i, job in enumerate(self.jobs, 1):
@@ -219,14 +219,15 @@ class Sweep:
             log.info("run %d of %d %s: %s (romannet up's output in %s)", i, len(self.jobs), job.name,
                      "resuming it" if state is RunState.PARTIAL else "training it", log_path)
             started = time.monotonic()
+            self.display.restart(f"sweep: run {i} of {len(self.jobs)} {job.name}", self.plan.max_actions,
+                                 "actions", short_label=f"run {i}/{len(self.jobs)} {job.name}")
 
-            def tick(i: int = i, job: RunJob = job, started: float = started) -> None:
+            def tick(job: RunJob = job, started: float = started) -> None:
                 try:
                     self.done[job.name] = run_actions(job.run_dir)
                 except RomannetError:  # a ledger being replaced right now: the next tick reads it
                     pass
-                self.display.show(training_line(i, len(self.jobs), job.name, self.done[job.name],
-                                                self.plan.max_actions, self.pace(time.monotonic() - started)))
+                self.display.update(self.done[job.name], eta=training_eta(self.pace(time.monotonic() - started)))
 
             code = run_child(self.plan.up_argv(job, resume=state is RunState.PARTIAL), log_path, self.stops, tick)
             self.training_s += time.monotonic() - started
@@ -249,7 +250,7 @@ class Sweep:
     def evaluate(self, only: str | None = None) -> int | None:
         """Each run's newest checkpoint and each scripted policy (or the one named `only`), frozen on the same
         scenes; an exit code to stop with, or None when every evaluation is finished."""
-        from .execute import eval_line, run_child
+        from .execute import eval_eta, format_duration, run_child
         from .state import finished_report
 
         argvs = {**{job.name: self.plan.eval_argv(job, self.plan.out / "eval" / job.name) for job in self.jobs},
@@ -269,9 +270,13 @@ class Sweep:
             log_path = self.plan.out / "logs" / f"eval-{name}.log"
             log.info("evaluation %d of %d: %s (romannet eval's output in %s)", k, len(argvs), name, log_path)
             started = time.monotonic()
+            self.display.restart(f"sweep: evaluation {k} of {len(argvs)} {name}", None, "runs",
+                                 short_label=f"evaluation {k}/{len(argvs)} {name}")
 
-            def tick(k: int = k, name: str = name, started: float = started) -> None:
-                self.display.show(eval_line(k, len(argvs), name, time.monotonic() - started, self.pace()))
+            def tick(journal: Path = dirs[name] / "runs.jsonl", started: float = started) -> None:
+                elapsed = time.monotonic() - started
+                self.display.update(_lines(journal), [f"{format_duration(elapsed)} so far"],
+                                    eta=eval_eta(elapsed, self.pace()))
 
             code = run_child(argv, log_path, self.stops, tick)
             self.display.clear()
@@ -297,6 +302,14 @@ class Sweep:
         return paths
 
 
+def _lines(path: Path) -> int:
+    """Lines in a file so far (the runs an evaluation has journaled); 0 before it exists."""
+    try:
+        return path.read_bytes().count(b"\n")
+    except OSError:
+        return 0
+
+
 def _last_line(path: Path, tail_bytes: int = 4096) -> str:
     """The last non-empty line of a log file (what a failed child said last)."""
     try:
@@ -310,7 +323,7 @@ def _last_line(path: Path, tail_bytes: int = 4096) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from romannet.common.fsutil import write_json_atomic, write_text_atomic
-    from romannet.progress import ClearLineFilter, ProgressDisplay
+    from romannet.progress import ClearLineFilter, Progress
 
     from .execute import StopRequests
     from .plan import MANIFEST
@@ -325,7 +338,7 @@ def run(args: argparse.Namespace) -> int:
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     root = logging.getLogger()
     root.addHandler(handler)
-    display = ProgressDisplay(log_every_s=args.progress_every)
+    display = Progress("sweep", log_every_s=args.progress_every, redraw_s=1.0)
     console = [h for h in root.handlers if isinstance(h, logging.StreamHandler)
                and not isinstance(h, logging.FileHandler)]
     clear = ClearLineFilter(display)

@@ -97,19 +97,19 @@ def format_duration(seconds: float | None) -> str:
     return f"{minutes // 60}h{minutes % 60:02d}m" if minutes >= 60 else f"{minutes}m" if minutes else "<1m"
 
 
-def training_line(index: int, total: int, name: str, done: int, max_actions: int, pace: Pace) -> str:
-    """The progress line while run `index` (1-based) of `total` trains."""
+def training_eta(pace: Pace) -> float | str | None:
+    """The sweep's ETA while a run trains: seconds for the whole sweep, or the training's with a note when
+    no evaluation has been timed yet."""
     eta = eta_s(pace)
-    tail = "" if eta is not None or pace.actions_gained <= 0 else " + evaluations"
-    return (f"sweep: run {index} of {total} {name}: actions {done}/{max_actions} | ETA "
-            f"{format_duration(eta if eta is not None else _training_only(pace))}{tail}")
+    if eta is not None or pace.actions_gained <= 0:
+        return eta
+    return f"{format_duration(_training_only(pace))} + evaluations"
 
 
-def eval_line(index: int, total: int, name: str, elapsed_s: float, pace: Pace) -> str:
-    """The progress line while evaluation `index` of `total` runs."""
+def eval_eta(elapsed_s: float, pace: Pace) -> float | None:
+    """The sweep's ETA while an evaluation runs (elapsed_s of it so far)."""
     eta = eta_s(pace)
-    return (f"sweep: evaluation {index} of {total} {name}: {format_duration(elapsed_s)} so far | ETA "
-            f"{format_duration(None if eta is None else max(0.0, eta - elapsed_s))}")
+    return None if eta is None else max(0.0, eta - elapsed_s)
 
 
 def _training_only(pace: Pace) -> float | None:
