@@ -512,7 +512,7 @@ class Progress:
         if initial is not None:  # where the work starts, so the first update already gives a rate
             self._done_rate.add(time.monotonic(), initial)
             self._count_rate.add(time.monotonic(), initial)
-        self._next_log = time.monotonic() + log_every_s
+        self._next_log = 0.0  # the first update is logged at once: a log shows the work has begun
         self._next_draw = 0.0
         self._drawn = False
         self._filter: ClearLineFilter | None = None
