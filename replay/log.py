@@ -10,8 +10,13 @@ first_item_id, so ids need no extra field. A segment being written has no footer
 closed; recovery finishes unfinished segments (DataEnd + Footer) so they become complete files.
 
 Group commit: `append` queues a record; `sync(ticket)` writes everything queued as one chunk and fsyncs,
-so concurrent inserters share one fsync. Chunk boundaries are the unit of durability and of recovery:
-a torn or corrupt chunk at a segment's tail is dropped whole (see segscan.py).
+so concurrent inserters share one fsync. Chunk boundaries are the unit of durability: a chunk torn by
+a crash (never acknowledged) is dropped whole. Each record also carries its own checksum (recordcheck.py;
+segments whose Header names the library `romannet.replay/2`), so damage costs only the damaged records:
+recovery resynchronises at the next good record (segscan.py) and every read can be checked.
+
+A new segment is written under a temporary name and renamed once its preamble is durable, so a segment
+file that is empty or lacks its preamble is always damage, never a crash while rotating.
 """
 
 from __future__ import annotations
@@ -28,12 +33,16 @@ from pathlib import Path
 from romannet.common.fsutil import fsync_directory
 from romannet.common.wire import mcap_schema
 
+from .recordcheck import check_suffix
+
 log = logging.getLogger(__name__)
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_DATA_END = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F
 TOPIC = "/replay/transitions"
 PROFILE = "romannet-replay"
+LIBRARY = "romannet.replay/2"  # records end with a checksum field (recordcheck.py)
+LEGACY_LIBRARY = "romannet.replay"  # records without one (older directories): checked per chunk only
 CHUNK_FIXED_BYTES = 9 + 8 + 8 + 8 + 4 + 4 + 8  # record header + chunk fields with compression ""
 MESSAGE_FIXED_BYTES = 9 + 2 + 4 + 8 + 8  # record header + channel, sequence, log_time, publish_time
 SEGMENT_GLOB = "segment-*.mcap"
@@ -74,7 +83,18 @@ def segment_preamble(first_item_id: int) -> bytes:
                      + struct.pack("<I", len(data)) + data)
     channel = _record(OP_CHANNEL, struct.pack("<HH", 1, 1) + _string(TOPIC) + _string("protobuf")
                       + _string_map({"first_item_id": str(first_item_id)}))
-    return MAGIC + _record(OP_HEADER, _string(PROFILE) + _string("romannet.replay")) + schema + channel
+    return MAGIC + _record(OP_HEADER, _string(PROFILE) + _string(LIBRARY)) + schema + channel
+
+
+def is_legacy_segment(path: Path) -> bool:
+    """True if the segment's Header names the library that wrote records without checksums."""
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(64)
+    except OSError:
+        return False
+    legacy = _record(OP_HEADER, _string(PROFILE) + _string(LEGACY_LIBRARY))
+    return head[8:8 + len(legacy)] == legacy
 
 
 # DataEnd (no data CRC) + Footer without a summary section + closing magic.
@@ -158,7 +178,8 @@ class SegmentLog:
 
     # ---------------------------------------------------------------------------------------- writing
     def append(self, item_id: int, data: bytes, publish_time_ns: int, suffix: bytes = b"") -> int:
-        """Queue a record (its bytes: data + suffix); returns the ticket to pass to sync()."""
+        """Queue a record (its bytes: data + suffix + its checksum); returns the ticket to pass to sync()."""
+        suffix = suffix + check_suffix(item_id, data, suffix)  # outside the lock: inserters run it in parallel
         with self._mu:
             if self._failed is not None:
                 raise LogFailed(f"the replay log failed earlier ({self._failed}); restart the server")
@@ -233,11 +254,17 @@ class SegmentLog:
         self._finish_current()
         self._last_number += 1
         path = segment_path(self.directory, self._last_number)
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        tmp = path.with_name(path.name + ".new")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         preamble = segment_preamble(first_item_id)
         _write_all(fd, preamble)
         if self.fsync_enabled:
             os.fsync(fd)
+        if path.exists():
+            os.close(fd)
+            raise FileExistsError(f"{path} exists already")
+        os.rename(tmp, path)  # the name appears only with its preamble
+        if self.fsync_enabled:
             fsync_directory(self.directory)  # the new name must survive a crash too
         self._fd, self._segment, self._size = fd, self._last_number, len(preamble)
         self._chunks_in_segment = 0

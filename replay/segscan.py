@@ -1,11 +1,17 @@
-"""Recovery scan of one log segment (format in log.py): whole chunks only, CRC-checked, offsets exact.
+"""Recovery scan of one log segment (format in log.py): every record that checks out, offsets exact.
 
-The scan reads a segment with mmap, checks each chunk's CRC and each message's sequence (= item id mod
-2^32), hands every message's bytes to a `parse` callback (which may reject it by raising ValueError),
-and stops at the first torn or corrupt record. Everything from there to the end of the file is the
-dropped tail: a chunk torn by a crash was never acknowledged (acks follow the chunk's fsync), so in that
-case nothing acknowledged is lost. `repair_tail` then cuts the file at the last whole chunk (keeping the
-dropped bytes beside it, for forensics) and appends DataEnd + Footer so it is a complete MCAP file.
+The scan walks a segment's records with mmap. A chunk whose CRC holds is taken whole; a chunk that fails
+it is entered, and each of its messages is kept when its own checksum (recordcheck.py) holds. Any record
+that does not check out starts a resynchronisation: the scan looks for the next message record whose
+framing, item id and checksum are all right, and goes on from there. So damage costs only the records
+it touches, and the stretch skipped is reported as a Damage (which item ids it held is for recovery.py
+to say, from the ids on either side).
+
+A chunk cut off by the end of the file (its header whole and consistent, its body short) is a write torn
+by a crash: never acknowledged, since acks follow the chunk's fsync. `repair_tail` cuts such a tail
+(keeping the bytes beside the file, for forensics) and appends DataEnd + Footer so the segment is a
+complete MCAP file; damaged bytes elsewhere stay where they are. Segments written before records had
+checksums (legacy) keep the old rule: a chunk that fails its CRC is lost whole.
 """
 
 from __future__ import annotations
@@ -28,17 +34,37 @@ from .log import (
     OP_CHANNEL,
     OP_CHUNK,
     OP_DATA_END,
-    OP_FOOTER,
     OP_HEADER,
     OP_MESSAGE,
+    OP_SCHEMA,
     SEGMENT_TRAILER,
     Location,
+    is_legacy_segment,
     segment_number,
 )
+from .recordcheck import record_problem
+
+# Bytes 5..10 of a message record: the high half of its 8-byte length (records are < 4 GiB) and channel 1.
+_MESSAGE_SIGNATURE = b"\x00\x00\x00\x00\x01\x00"
+_ID_WINDOW = 1 << 24  # how far past the expected id a resynchronised record's id may lie
 
 
 class _Bad(Exception):
-    """The record at the current offset is torn or corrupt."""
+    """The record at the current offset is damaged."""
+
+
+class _Torn(Exception):
+    """The file ends inside a record whose header is whole: a write cut short by a crash."""
+
+
+@dataclass
+class Damage:
+    """A stretch [offset, end) of a segment in which no record checked out."""
+
+    offset: int
+    end: int
+    reason: str
+    named_ids: list[int] = field(default_factory=list)  # ids read from damaged message headers (best effort)
 
 
 @dataclass
@@ -48,25 +74,29 @@ class ScanResult:
     path: Path
     first_item_id: int | None = None  # from the channel metadata; None if the preamble is unreadable
     items: list[tuple[int, Location, Any]] = field(default_factory=list)  # (id, where, parse(data))
-    good_end: int = 0  # offset just after the last whole record before the trailer
+    good_end: int = 0  # where a torn tail starts (the file size when there is none)
     file_size: int = 0
     finished: bool = False  # DataEnd + Footer + magic present
-    problem: str | None = None  # why the scan stopped early
-    dropped_records: int = 0  # transition records seen (at least partly) in the dropped tail
+    legacy: bool = False  # records without their own checksum
+    damage: list[Damage] = field(default_factory=list)
+    torn: bool = False  # the file ends in a chunk torn by a crash
+    torn_records: int = 0  # message records seen (at least partly) in the torn chunk
+    preamble_problem: str | None = None
 
     @property
     def dropped_bytes(self) -> int:
-        return 0 if self.finished else self.file_size - self.good_end
+        """Bytes of a torn tail (cut by repair_tail)."""
+        return self.file_size - self.good_end if self.torn else 0
 
 
 def _header(buf: Any, pos: int, end: int) -> tuple[int, int, int]:
-    """(opcode, body length, body start) of the record at pos, or _Bad if it does not fit the file."""
+    """(opcode, body length, body start) of the record at pos; _Torn if the file ends inside it."""
     if pos + 9 > end:
-        raise _Bad(f"record header cut off at offset {pos} ({end - pos} of 9 bytes)")
+        raise _Torn(f"record header cut off at offset {pos} ({end - pos} of 9 bytes)")
     opcode, length = struct.unpack_from("<BQ", buf, pos)
     if pos + 9 + length > end:
-        raise _Bad(f"record (opcode 0x{opcode:02x}) at offset {pos} needs {9 + length} bytes; "
-                   f"only {end - pos} remain")
+        raise _Torn(f"record (opcode 0x{opcode:02x}) at offset {pos} needs {9 + length} bytes; "
+                    f"only {end - pos} remain")
     return opcode, length, pos + 9
 
 
@@ -77,7 +107,7 @@ def _channel_first_id(buf: Any, body: int, length: int) -> int:
         pos += 4 + n
     (map_len,) = struct.unpack_from("<I", buf, pos)
     pos += 4
-    stop = pos + map_len
+    stop = min(pos + map_len, body + length)
     while pos < stop:
         (kn,) = struct.unpack_from("<I", buf, pos)
         key = bytes(buf[pos + 4:pos + 4 + kn]).decode()
@@ -87,11 +117,19 @@ def _channel_first_id(buf: Any, body: int, length: int) -> int:
         pos += 4 + vn
         if key == "first_item_id":
             return int(value)
-    raise _Bad("channel metadata has no first_item_id")
+    raise ValueError("channel metadata has no first_item_id")
+
+
+def full_id(sequence: int, expected: int | None) -> int:
+    """The item id whose low 32 bits are `sequence`: the first one at or after `expected`."""
+    if expected is None:
+        return sequence
+    candidate = (expected & ~0xFFFFFFFF) | sequence
+    return candidate if candidate >= expected else candidate + (1 << 32)
 
 
 def _count_messages(buf: Any, pos: int, end: int) -> int:
-    """Best-effort count of message records in a torn or corrupt chunk (for the warning)."""
+    """Best-effort count of message records in a torn chunk (for the warning)."""
     count = 0
     while pos + 9 <= end:
         opcode, length = struct.unpack_from("<BQ", buf, pos)
@@ -102,125 +140,218 @@ def _count_messages(buf: Any, pos: int, end: int) -> int:
     return count
 
 
+class _Scanner:
+    """One pass over one segment; fills a ScanResult."""
+
+    def __init__(self, mm: mmap.mmap, path: Path, parse: Callable[[memoryview], Any], result: ScanResult):
+        self.mm, self.buf, self.size = mm, memoryview(mm), len(mm)
+        self.segment = segment_number(path)
+        self.parse, self.result = parse, result
+        self.next_id: int | None = None
+
+    def close(self) -> None:
+        self.buf.release()
+
+    # ------------------------------------------------------------------------------------ preamble
+    def preamble(self) -> int:
+        """Offset after Header, Schema and Channel (sets first_item_id); 8 or 0 when unreadable."""
+        buf, size = self.buf, self.size
+        if bytes(buf[:8]) != MAGIC:
+            self.result.preamble_problem = "no MCAP magic at the start"
+            return 0
+        pos = 8
+        try:
+            while True:
+                opcode, length, body = _header(buf, pos, size)
+                if opcode == OP_CHANNEL:
+                    self.result.first_item_id = self.next_id = _channel_first_id(buf, body, length)
+                    return body + length
+                if opcode not in (OP_HEADER, OP_SCHEMA):
+                    raise ValueError(f"unexpected record 0x{opcode:02x} before the channel at offset {pos}")
+                pos = body + length
+        except (_Torn, struct.error, ValueError, UnicodeDecodeError) as exc:
+            self.result.preamble_problem = f"unreadable preamble: {exc}"
+            return 8
+
+    # ------------------------------------------------------------------------------------- records
+    def walk(self, pos: int) -> None:
+        result, size = self.result, self.size
+        while pos < size:
+            try:
+                pos = self._step(pos)
+            except _Torn as torn:
+                if self._is_torn_chunk(pos) and self._resync(pos + 1) is None:  # a tail cut by a crash
+                    result.torn, result.good_end = True, pos
+                    result.torn_records = _count_messages(self.buf, pos + CHUNK_FIXED_BYTES, size)
+                    return
+                pos = self._skip_damage(pos, str(torn))
+            except (_Bad, struct.error, ValueError, UnicodeDecodeError) as bad:
+                pos = self._skip_damage(pos, str(bad))
+            if pos < 0:
+                return
+
+    def _is_torn_chunk(self, pos: int) -> bool:
+        """Whether pos starts a chunk whose header is whole and consistent, or is cut off itself."""
+        rest = self.size - pos
+        if self.buf[pos] != OP_CHUNK:
+            return False
+        if rest < CHUNK_FIXED_BYTES:
+            return True
+        _, length, _, _, records_len, _, comp_len, records_len2 = struct.unpack_from("<BQQQQIIQ", self.buf, pos)
+        return comp_len == 0 and records_len == records_len2 and length == CHUNK_FIXED_BYTES - 9 + records_len
+
+    def _skip_damage(self, pos: int, reason: str) -> int:
+        """Record the damaged stretch from pos; the offset to go on from, or -1 at the end of the file."""
+        found = self._resync(pos + 1)
+        end = found if found is not None else self.size
+        if found is None and self.size - pos >= len(SEGMENT_TRAILER) and \
+                bytes(self.buf[self.size - len(SEGMENT_TRAILER):]) == SEGMENT_TRAILER:
+            end = self.size - len(SEGMENT_TRAILER)
+            self.result.finished = True
+        self.result.damage.append(Damage(pos, end, reason, self._named_ids(pos, end)))
+        return found if found is not None else -1
+
+    def _step(self, pos: int) -> int:
+        """Handle the record at pos; returns the offset of the next one."""
+        opcode, length, body = _header(self.buf, pos, self.size)
+        if opcode == OP_DATA_END:
+            trailer_end = pos + len(SEGMENT_TRAILER)
+            if bytes(self.buf[pos:trailer_end]) == SEGMENT_TRAILER and trailer_end == self.size:
+                self.result.finished = True
+                return self.size
+            raise _Bad(f"misplaced or incomplete file trailer at offset {pos}")
+        if opcode == OP_CHUNK:
+            return self._chunk(pos, length, body)
+        if opcode == OP_MESSAGE:
+            self._take(self._message(pos, length, body, self.next_id))
+            return body + length
+        raise _Bad(f"unexpected record 0x{opcode:02x} at offset {pos}")
+
+    def _chunk(self, pos: int, length: int, body: int) -> int:
+        """A chunk whose CRC holds: all its items; otherwise step inside and check message by message."""
+        _, _, records_len, crc, comp_len = struct.unpack_from("<QQQII", self.buf, body)
+        (records_len2,) = struct.unpack_from("<Q", self.buf, body + 32)
+        if comp_len != 0 or records_len != records_len2 or length != CHUNK_FIXED_BYTES - 9 + records_len:
+            raise _Bad(f"chunk header at offset {pos} is inconsistent")
+        start, end = pos + CHUNK_FIXED_BYTES, body + length
+        if crc != 0 and zlib.crc32(self.buf[start:end]) != crc:
+            if self.result.legacy:
+                raise _Bad(f"chunk at offset {pos} fails its CRC check and its records have no checksums")
+            return start  # the walk checks each message on its own
+        items, next_id, rpos = [], self.next_id, start
+        while rpos < end:
+            opcode, rlen, rbody = _header(self.buf, rpos, end)
+            if opcode != OP_MESSAGE:
+                raise _Bad(f"record 0x{opcode:02x} at offset {rpos} inside a chunk")
+            item = self._message(rpos, rlen, rbody, next_id, chunk=(pos, items[0][0] if items else None))
+            items.append(item)
+            next_id = item[0] + 1
+            rpos = rbody + rlen
+        for item in items:
+            self._take(item)
+        return end
+
+    def _message(self, pos: int, length: int, body: int, expected: int | None,
+                 chunk: tuple[int, int | None] | None = None) -> tuple[int, Location, Any]:
+        """(id, location, parsed) of the message at pos, or _Bad. Inside a CRC-checked chunk the id must be
+        the next one; elsewhere it may skip ahead (records were lost) and the record's checksum must hold."""
+        if length < MESSAGE_FIXED_BYTES - 9:
+            raise _Bad(f"message record at offset {pos} too short")
+        _, sequence = struct.unpack_from("<HI", self.buf, body)
+        item_id = full_id(sequence, expected)
+        if chunk is not None and expected is not None and item_id != expected:
+            raise _Bad(f"message at offset {pos} has sequence {sequence}; expected item {expected}")
+        if expected is not None and item_id - expected > _ID_WINDOW:
+            raise _Bad(f"message at offset {pos} has an implausible item id {item_id}")
+        data_offset = body + MESSAGE_FIXED_BYTES - 9
+        data = self.buf[data_offset:body + length]
+        if chunk is None:
+            if self.result.legacy:
+                raise _Bad(f"message at offset {pos} outside a sound chunk, without a checksum")
+            problem = record_problem(item_id, data)
+            if problem:
+                raise _Bad(f"{problem} (offset {pos})")
+        try:
+            meta = self.parse(data)  # the check field is one more (unknown) protobuf field
+        except ValueError as exc:
+            raise _Bad(f"item {item_id} at offset {pos}: {exc}") from exc
+        chunk_offset, chunk_first = chunk if chunk is not None else (pos, item_id)
+        return item_id, Location(self.segment, chunk_offset, item_id if chunk_first is None else chunk_first,
+                                 data_offset, len(data)), meta
+
+    def _take(self, item: tuple[int, Location, Any]) -> None:
+        self.result.items.append(item)
+        self.next_id = item[0] + 1
+
+    def _resync(self, start: int) -> int | None:
+        """Offset of the next message record at or after start that checks out completely, or None."""
+        if self.result.legacy:
+            return None
+        probe = start + 5
+        while True:
+            hit = self.mm.find(_MESSAGE_SIGNATURE, probe)
+            if hit < 0:
+                return None
+            pos = hit - 5
+            probe = hit + 1
+            if pos < start or self.buf[pos] != OP_MESSAGE:
+                continue
+            try:
+                _, length, body = _header(self.buf, pos, self.size)
+                self._message(pos, length, body, self.next_id)
+            except (_Bad, _Torn, struct.error, ValueError):
+                continue
+            return pos
+
+    def _named_ids(self, start: int, end: int) -> list[int]:
+        """Ids in the sequence fields of message-like headers in [start, end) (for a damaged tail)."""
+        ids: list[int] = []
+        probe = start + 5
+        while (hit := self.mm.find(_MESSAGE_SIGNATURE, probe, end + 5)) >= 0:
+            probe = hit + 1
+            pos = hit - 5
+            if pos < start or self.buf[pos] != OP_MESSAGE or pos + 15 > self.size:
+                continue
+            (sequence,) = struct.unpack_from("<I", self.buf, pos + 11)
+            item_id = full_id(sequence, self.next_id)
+            if self.next_id is None or item_id - self.next_id <= _ID_WINDOW:
+                ids.append(item_id)
+        return sorted(set(ids))
+
+
 def scan_segment(path: Path, parse: Callable[[memoryview], Any], start_offset: int | None = None,
                  start_item_id: int | None = None) -> ScanResult:
-    """Scan `path` from its first chunk, or from a chunk at start_offset whose first item is start_item_id."""
-    result = ScanResult(path)
+    """Scan `path` from its first record, or from the record at start_offset whose item is start_item_id."""
+    result = ScanResult(path, legacy=is_legacy_segment(path))
     size = path.stat().st_size
-    result.file_size = size
-    if size == 0:
-        result.problem = "empty file (crash while the segment was being created)"
+    result.file_size = result.good_end = size
+    if size < len(MAGIC):
+        result.preamble_problem = "empty file" if size == 0 else f"only {size} byte(s)"
         return result
     with path.open("rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-        buf = memoryview(mm)
+        scanner = _Scanner(mm, path, parse, result)
         try:
-            _scan(buf, size, path, parse, start_offset, start_item_id, result)
+            pos = scanner.preamble()
+            if start_offset is not None:
+                pos, scanner.next_id = start_offset, start_item_id
+            scanner.walk(pos)
         finally:
-            buf.release()
+            scanner.close()
     return result
 
 
-def _scan(buf: memoryview, size: int, path: Path, parse: Callable[[memoryview], Any], start_offset: int | None,
-          start_item_id: int | None, result: ScanResult) -> None:
-    segment = segment_number(path)
-    pos = 0
-    next_id: int | None = None
-    try:
-        if bytes(buf[:8]) != MAGIC:
-            raise _Bad("no MCAP magic at the start")
-        pos = 8
-        while next_id is None:  # preamble: Header, Schema, Channel
-            opcode, length, body = _header(buf, pos, size)
-            if opcode == OP_CHANNEL:
-                result.first_item_id = next_id = _channel_first_id(buf, body, length)
-            elif opcode not in (OP_HEADER, 0x03):
-                raise _Bad(f"unexpected record 0x{opcode:02x} before the channel at offset {pos}")
-            pos = body + length
-        result.good_end = pos
-        if start_offset is not None:
-            pos, next_id = start_offset, start_item_id
-            result.good_end = pos
-        while pos < size:
-            opcode, length, body = _header(buf, pos, size)
-            if opcode == OP_DATA_END:
-                trailer_end = pos + len(SEGMENT_TRAILER)
-                if bytes(buf[pos:trailer_end]) == SEGMENT_TRAILER and trailer_end == size:
-                    result.finished = True
-                    return
-                if buf[pos + 9 + length:pos + 10 + length].tobytes() == bytes([OP_FOOTER]) and \
-                        bytes(buf[size - 8:size]) == MAGIC:
-                    result.finished = True  # another writer's trailer (e.g. with a summary)
-                    return
-                raise _Bad(f"incomplete file trailer at offset {pos}")
-            if opcode != OP_CHUNK:
-                pos = body + length  # MCAP readers skip records they do not need; so do we
-                result.good_end = pos
-                continue
-            next_id = _scan_chunk(buf, pos, body, length, segment, next_id, parse, result)  # type: ignore[arg-type]
-            pos = body + length
-            result.good_end = pos
-    except _Bad as bad:
-        result.problem = str(bad)
-        if pos + CHUNK_FIXED_BYTES <= size and buf[pos] == OP_CHUNK:
-            result.dropped_records = _count_messages(buf, pos + CHUNK_FIXED_BYTES, size)
-    except (struct.error, ValueError, UnicodeDecodeError) as exc:
-        result.problem = f"unreadable record at offset {pos}: {exc}"
-
-
-def _scan_chunk(buf: memoryview, pos: int, body: int, length: int, segment: int, next_id: int,
-                parse: Callable[[memoryview], Any], result: ScanResult) -> int:
-    """Check one chunk and add its items to result (all or none). Returns the next item id."""
-    _, _, _, crc, comp_len = struct.unpack_from("<QQQII", buf, body)
-    if comp_len != 0:
-        raise _Bad(f"chunk at offset {pos} is compressed; this log writes uncompressed chunks")
-    (records_len,) = struct.unpack_from("<Q", buf, body + 32)
-    start = pos + CHUNK_FIXED_BYTES
-    end = body + length
-    if start + records_len != end:
-        raise _Bad(f"chunk at offset {pos} has inconsistent lengths")
-    if crc != 0 and zlib.crc32(buf[start:end]) != crc:
-        raise _Bad(f"chunk at offset {pos} fails its CRC check (corrupt data)")
-    items = []
-    rpos = start
-    while rpos < end:
-        opcode, rlen, rbody = _header(buf, rpos, end)
-        if opcode == OP_MESSAGE:
-            if rlen < MESSAGE_FIXED_BYTES - 9:
-                raise _Bad(f"message record at offset {rpos} too short")
-            _, sequence = struct.unpack_from("<HI", buf, rbody)
-            if sequence != next_id & 0xFFFFFFFF:
-                raise _Bad(f"message at offset {rpos} has sequence {sequence}; expected item {next_id}")
-            data_offset = rbody + MESSAGE_FIXED_BYTES - 9
-            data = buf[data_offset:rbody + rlen]
-            try:
-                meta = parse(data)
-            except ValueError as exc:
-                raise _Bad(f"item {next_id} at offset {rpos}: {exc}") from exc
-            items.append((next_id, Location(segment, pos, items[0][0] if items else next_id, data_offset,
-                                            len(data)), meta))
-            next_id += 1
-        rpos = rbody + rlen
-    result.items.extend(items)
-    return next_id
-
-
 def repair_tail(result: ScanResult) -> None:
-    """Cut a segment after its last whole chunk, keep the cut bytes in `<name>.tail-<offset>.bad`, and
-    append DataEnd + Footer so the file is a complete MCAP. A file without a readable preamble is
-    renamed to `<name>.bad` (it holds no acknowledged item: the preamble is fsync'ed before any chunk)."""
+    """Make a scanned segment a complete MCAP file: cut a torn tail (keeping the cut bytes in
+    `<name>.tail-<offset>.bad`) and append DataEnd + Footer. Damaged bytes elsewhere stay in place (the
+    next scan skips them the same way). A file too short to hold a preamble is left as it is."""
     path = result.path
-    if result.finished:
+    if result.finished or result.file_size < len(MAGIC):
         return
-    if result.first_item_id is None:
-        path.rename(path.with_name(path.name + ".bad"))
-        fsync_directory(path.parent)
-        return
-    if result.dropped_bytes:
+    if result.torn:
         with path.open("rb") as fh:
             fh.seek(result.good_end)
             tail = fh.read()
-        keep = path.with_name(f"{path.name}.tail-{result.good_end}.bad")
-        keep.write_bytes(tail)
+        path.with_name(f"{path.name}.tail-{result.good_end}.bad").write_bytes(tail)
     with path.open("r+b") as fh:
         fh.truncate(result.good_end)
         fh.seek(result.good_end)

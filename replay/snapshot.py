@@ -59,9 +59,10 @@ def _load(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     return meta, arrays
 
 
-def load_latest(directory: Path) -> tuple[Path, dict[str, Any], dict[str, np.ndarray]] | None:
-    """(path, meta, arrays) of the newest readable snapshot, or None. Removes leftover .tmp files."""
-    for tmp in directory.glob(f"{_PREFIX}*.npz.tmp"):
+def load_latest(directory: Path, clean: bool = True) -> tuple[Path, dict[str, Any], dict[str, np.ndarray]] | None:
+    """(path, meta, arrays) of the newest readable snapshot, or None. Removes leftover .tmp files when
+    `clean` (not while a server may be writing one: `romannet replay --check`)."""
+    for tmp in directory.glob(f"{_PREFIX}*.npz.tmp") if clean else ():
         log.info("ignoring %s: an unfinished snapshot from a crash", tmp.name)
         tmp.unlink(missing_ok=True)
     for path in reversed(snapshot_files(directory)):

@@ -8,6 +8,12 @@ restart = snapshot + log tail (recovery.py). Transition bytes stay on disk and a
 OS page cache keeps recent ones in memory), so memory does not grow with capacity_bytes. One store per
 directory: it holds <dir>/LOCK (common/dirlock.py) from before recovery until close, so a second store
 (another replay server, a tool) on a directory in use fails at once with DirectoryInUseError.
+
+Damage: recovery names every acknowledged item it cannot get back, and the store refuses to open over
+such a loss (ReplayLossError, one line with the count and ids) until it is accepted (`accept_loss`),
+which records it in <dir>/losses.json first. Every sampled record is checked against its own checksum
+(recordcheck.py) as it is read; a damaged one is quarantined: taken out of the index, recorded in
+losses.json, counted in stats, and the batch is drawn again without it.
 """
 
 from __future__ import annotations
@@ -34,10 +40,12 @@ from romannet.common.wire import (
 )
 
 from .batchcodec import sample_batch_layout
-from .log import Location, SegmentLog
+from .log import Location, SegmentLog, is_legacy_segment, list_segments, segment_number
+from .losses import Loss, ReplayLossError, describe, load_losses, quarantined_ids, record_losses, unaccepted
 from .prioritized import RankBasedSampler, annealed_beta, is_weights
 from .ratelimiter import RateLimiter
-from .recovery import ItemMeta, Key, priority_suffix, recover
+from .recordcheck import record_problem
+from .recovery import ItemMeta, Key, Recovered, log_summary, priority_suffix, repair, scan_directory
 from .snapshot import write_snapshot
 from .storestats import RateMeter, build_stats
 
@@ -55,9 +63,12 @@ class _Inflight:
 
 
 class ReplayStore:
-    """Durable prioritized replay in `directory` (created if missing; recovered if it holds data)."""
+    """Durable prioritized replay in `directory` (created if missing; recovered if it holds data).
 
-    def __init__(self, cfg: ReplayConfig, directory: str | Path):
+    accept_loss: go on even if recovery finds acknowledged items it cannot get back (they are recorded
+    in losses.json first); without it such a loss raises ReplayLossError and nothing is written."""
+
+    def __init__(self, cfg: ReplayConfig, directory: str | Path, accept_loss: bool = False):
         self.cfg = cfg
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
@@ -85,8 +96,10 @@ class ReplayStore:
         self._closed = False
         self._limiter = RateLimiter(cfg.min_size_to_sample, cfg.samples_per_insert, cfg.spi_tolerance)
         self._dir_lock = DirectoryLock(self.directory, "replay directory")  # before recovery repairs anything
+        self._quarantine_mu = threading.Lock()  # losses.json writes
+        self._quarantined: dict[int, str] = {}  # found damaged while this store ran: id -> why
         try:
-            self.recovered = recover(self.directory)
+            self.recovered = self._recover(accept_loss)
             self._load(self.recovered)
             self._log = SegmentLog(self.directory, cfg.segment_max_bytes, cfg.fsync, cfg.group_commit)
         except BaseException:
@@ -98,6 +111,33 @@ class ReplayStore:
         self._snapshotter.start()
 
     # ------------------------------------------------------------------------------------------ recovery
+    def _recover(self, accept_loss: bool) -> Recovered:
+        """Scan; refuse (or record, if accepted) a loss not recorded before; repair; drop quarantined items."""
+        rec = scan_directory(self.directory)
+        recorded = load_losses(self.directory)
+        new = unaccepted(rec.losses, recorded)
+        if new and not accept_loss:
+            raise ReplayLossError(
+                f"replay directory {self.directory} cannot recover {_summary(new)}; restore the damaged "
+                "files if you can, or start with --accept-loss to go on without those items (they are then "
+                "recorded in losses.json)")
+        for loss in new:
+            log.error("replay directory %s: lost %s; accepted, recorded in losses.json", self.directory,
+                      describe(loss))
+        record_losses(self.directory, new, "accepted at start (--accept-loss)")
+        repair(self.directory, rec)
+        log_summary(rec)
+        recorded += new
+        self._lost_items = sum(loss.count for loss in recorded if loss.kind == "lost")
+        self._recorded_quarantine = quarantined_ids(recorded)
+        if self._recorded_quarantine:  # a restart from a snapshot taken before they were found
+            quarantined, split = self._recorded_quarantine, len(rec.items) - rec.tail_items
+            head = [it for it in rec.items[:split] if it[0] not in quarantined]
+            tail = [it for it in rec.items[split:] if it[0] not in quarantined]
+            rec.items, rec.tail_items = head + tail, len(tail)
+        self._legacy_segments = {segment_number(p) for p in list_segments(self.directory) if is_legacy_segment(p)}
+        return rec
+
     def _load(self, rec: Any) -> None:
         c = rec.counters
         self._c.update(c.get("counts", {}))
@@ -226,8 +266,19 @@ class ReplayStore:
                request_id: str = "local") -> SampleBatchMsg:
         """A prioritized batch (with replacement) of stored transitions as encoded bytes, with P(i) and
         IS weights. Raises TimeoutError while the rate limiter holds sampling back for timeout_s seconds."""
-        def read(drawn: list[tuple[int, float, float, Location]]) -> list[bytes]:
-            return [self._log.read(loc) for _, _, _, loc in drawn]
+        def read(drawn: list[tuple[int, float, float, Location]]) -> tuple[list[bytes], dict[int, str]]:
+            datas, bad = [], {}
+            for item_id, _, _, loc in drawn:
+                try:
+                    datas.append(self._log.read(loc))
+                except OSError as exc:
+                    datas.append(b"")
+                    bad[item_id] = f"item {item_id}: unreadable ({exc})"
+                    continue
+                problem = self._problem(item_id, loc, datas[-1])
+                if problem:
+                    bad[item_id] = problem
+            return datas, bad
 
         drawn, size, datas = self._draw(batch_size, timeout_s, rng, read)
         items = tuple(SampleItem(i, p, w, d) for (i, p, w, _), d in zip(drawn, datas, strict=True))
@@ -237,40 +288,96 @@ class ReplayStore:
                        request_id: str = "local") -> bytearray:
         """sample() as the protobuf SampleBatch the server sends (what wire.encode_sample_batch would give),
         with each transition read from the log straight into its place in the reply (batchcodec)."""
-        def read(drawn: list[tuple[int, float, float, Location]]) -> bytearray:
+        def read(drawn: list[tuple[int, float, float, Location]]) -> tuple[bytearray, dict[int, str]]:
             buf, offsets = sample_batch_layout(request_id, len(self._sampler),
                                                [(i, p, w, loc.length) for i, p, w, loc in drawn])
             view = memoryview(buf)
-            for (_, _, _, loc), off in zip(drawn, offsets, strict=True):
-                self._log.read_into(loc, view[off:off + loc.length])
-            return buf
+            bad = {}
+            for (item_id, _, _, loc), off in zip(drawn, offsets, strict=True):
+                hole = view[off:off + loc.length]
+                try:
+                    self._log.read_into(loc, hole)
+                except OSError as exc:
+                    bad[item_id] = f"item {item_id}: unreadable ({exc})"
+                    continue
+                problem = self._problem(item_id, loc, hole)
+                if problem:
+                    bad[item_id] = problem
+            return buf, bad
 
         return self._draw(batch_size, timeout_s, rng, read)[2]
 
+    def _problem(self, item_id: int, loc: Location, data: bytes | memoryview) -> str | None:
+        """Why the stored record of item_id is damaged, or None (records of legacy segments: unchecked)."""
+        if loc.segment in self._legacy_segments:
+            return None
+        return record_problem(item_id, data)
+
     def _draw(self, batch_size: int, timeout_s: float, rng: np.random.Generator | None,
-              read: Callable[[list[tuple[int, float, float, Location]]], _T]) -> tuple[
+              read: Callable[[list[tuple[int, float, float, Location]]], tuple[_T, dict[int, str]]]) -> tuple[
                   list[tuple[int, float, float, Location]], int, _T]:
-        """Draw a batch: ([(id, P(i), IS weight, location)], buffer size, read(that list) under the lock)."""
+        """Draw a batch: ([(id, P(i), IS weight, location)], buffer size, read(that list) under the lock).
+
+        read also returns the damaged items it met (id -> why); they are quarantined and the batch is
+        drawn again from what is left, so a batch never holds a record that fails its checksum."""
         if not 1 <= batch_size <= self.cfg.max_batch_size:
             raise ValueError(f"batch_size = {batch_size} is invalid: must be 1..{self.cfg.max_batch_size} "
                              "(replay.max_batch_size)")
         self._limiter.acquire_samples(batch_size, timeout_s)
-        with self._lock:
-            if not len(self._sampler):
-                self._limiter.cancel_samples(batch_size)
-                raise TimeoutError("the replay buffer is empty")
-            ids, probs = self._sampler.sample(batch_size, rng if rng is not None else self._rng)
-            size = len(self._sampler)
-            beta = annealed_beta(self.cfg.beta0, self._c["sample_batches"], self.cfg.beta_anneal_updates)
-            weights = is_weights(probs, size, beta)
-            self._c["sample_batches"] += 1
-            self._c["samples"] += batch_size
-            drawn = [(int(i), min(1.0, float(p)), float(w), self._location(int(i)))
-                     for i, p, w in zip(ids, probs, weights, strict=True)]
-            # Read under the lock: a snapshot may reclaim a segment once its items are evicted.
-            data = read(drawn)
+        found: dict[int, str] = {}
+        try:
+            with self._lock:
+                while True:
+                    if not len(self._sampler):
+                        self._limiter.cancel_samples(batch_size)
+                        raise TimeoutError("the replay buffer is empty")
+                    ids, probs = self._sampler.sample(batch_size, rng if rng is not None else self._rng)
+                    size = len(self._sampler)
+                    beta = annealed_beta(self.cfg.beta0, self._c["sample_batches"], self.cfg.beta_anneal_updates)
+                    weights = is_weights(probs, size, beta)
+                    drawn = [(int(i), min(1.0, float(p)), float(w), self._location(int(i)))
+                             for i, p, w in zip(ids, probs, weights, strict=True)]
+                    # Read under the lock: a snapshot may reclaim a segment once its items are evicted.
+                    data, bad = read(drawn)
+                    if not bad:
+                        break
+                    for item_id in bad:
+                        self._drop(item_id)
+                    found.update(bad)
+                self._c["sample_batches"] += 1
+                self._c["samples"] += batch_size
+        finally:
+            if found:
+                self._record_quarantine(found)
         self._sample_rate.add(batch_size)
         return drawn, size, data
+
+    def _drop(self, item_id: int) -> None:
+        """Take a damaged item out of the index for good. Caller holds the lock."""
+        if not self._sampler.remove(item_id):
+            return
+        slot = item_id % self.cfg.capacity_items
+        key = self._keys[slot]
+        if key is not None:
+            self._keys[slot] = None
+            self._by_key.pop(key, None)
+            self._per_actor_held[key[0]] -= 1
+        self._bytes -= int(self._loc[slot, 4])
+        self._c["quarantined"] += 1
+        self._limiter.set_size(len(self._sampler))
+
+    def _record_quarantine(self, found: dict[int, str]) -> None:
+        """Log and record items found damaged (losses.json), so no restart offers them again."""
+        with self._quarantine_mu:
+            fresh = {i: why for i, why in found.items() if i not in self._quarantined}
+            self._quarantined.update(fresh)
+            losses = [Loss("quarantined", why, ((i, i + 1),)) for i, why in sorted(fresh.items())]
+            for loss in losses:
+                log.error("replay item %d quarantined, never sampled again: %s", loss.ranges[0][0], loss.what)
+            try:
+                record_losses(self.directory, losses, "quarantined when read")
+            except OSError as exc:
+                log.error("could not record quarantined item(s) in losses.json: %s", exc)
 
     def update_priorities(self, update: PriorityUpdateMsg) -> int:
         """Apply new priorities by item id; ids no longer held are ignored. Returns the number applied."""
@@ -295,6 +402,11 @@ class ReplayStore:
                               self._insert_rate.rate(), self._sample_rate.rate(), dict(self._per_actor_held),
                               dict(self._per_actor_inserts), dict(self._rejected), self._limiter.counters())
         out["log_fsyncs"] = self._log.fsyncs
+        with self._quarantine_mu:
+            quarantined = sorted(self._recorded_quarantine | set(self._quarantined))
+        out["lost_items"] = self._lost_items  # accepted at a recovery (losses.json)
+        out["quarantined_items"] = len(quarantined)
+        out["quarantined_ids"] = quarantined[-100:]
         return out
 
     # ---------------------------------------------------------------------------------------- snapshots
@@ -381,3 +493,11 @@ class ReplayStore:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _summary(losses: list[Loss]) -> str:
+    """'N acknowledged item(s): <loss>; <loss>' in one line."""
+    total = sum(loss.count for loss in losses)
+    uncounted = any(loss.uncounted for loss in losses)
+    return (f"{total} acknowledged item(s){' or more' if uncounted else ''}: "
+            + "; ".join(describe(loss) for loss in losses))

@@ -15,6 +15,7 @@ from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 
 from romannet.common.wire import PriorityUpdateMsg, decode_transition
+from romannet.replay.losses import ReplayLossError
 from romannet.replay.store import ReplayStore
 
 
@@ -93,20 +94,24 @@ def test_truncated_log_recovers_up_to_the_last_whole_chunk(tmp_path, caplog) -> 
     s.close()
 
 
-def test_bit_flipped_tail_record_fails_its_crc_and_is_dropped(tmp_path, caplog) -> None:
+def test_bit_flipped_tail_record_is_a_named_loss_the_operator_must_accept(tmp_path, caplog) -> None:
     expected, acked = _populate(tmp_path)
     seg = segments(tmp_path)[-1]
     data = bytearray(seg.read_bytes())
     start = _last_chunk_offset(seg)
-    data[start + 200] ^= 0x10
+    data[start + 200] ^= 0x10  # inside the last record's transition bytes
     seg.write_bytes(bytes(data))
-    with caplog.at_level(logging.WARNING):
-        s = ReplayStore(cfg(), tmp_path)
+    with pytest.raises(ReplayLossError, match=f"ids {acked[-1]};.*fails its checksum.*--accept-loss"):
+        ReplayStore(cfg(), tmp_path)
+    assert seg.read_bytes() == bytes(data)  # refused: nothing was repaired or written
+    with caplog.at_level(logging.ERROR):
+        s = ReplayStore(cfg(), tmp_path, accept_loss=True)
     del expected[acked[-1]]
     assert _held(s) == expected
-    assert any("CRC" in r.getMessage() and "dropped" in r.getMessage() for r in caplog.records)
+    assert any(f"ids {acked[-1]};" in r.getMessage() for r in caplog.records if r.levelno == logging.ERROR)
+    assert s.stats()["lost_items"] == 1
     s.close()
-    with ReplayStore(cfg(), tmp_path) as again:  # repaired: a second restart is clean
+    with ReplayStore(cfg(), tmp_path) as again:  # accepted and recorded: a second restart goes on
         assert _held(again) == expected
 
 
