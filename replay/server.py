@@ -319,7 +319,7 @@ class ReplayServer:
 
 def run_replay_server(cfg: Any, directory: str | Path, zenoh_config: zenoh.Config, stop_event: threading.Event,
                       run_id: str = "default", limits: ServerLimits | None = None,
-                      ready: Callable[[ReplayServer], None] | None = None) -> dict:
+                      ready: Callable[[ReplayServer], None] | None = None, accept_loss: bool = False) -> dict:
     """Open the store in `directory`, serve it until stop_event is set, then shut down cleanly.
 
     cfg: the ReplayConfig. The store is opened first: it locks the directory, so a second server on a
@@ -333,7 +333,7 @@ def run_replay_server(cfg: Any, directory: str | Path, zenoh_config: zenoh.Confi
 
     interval_s = float(getattr(cfg, "snapshot_interval_s", 0) or 0)
     final: dict = {}
-    store = ReplayStore(cfg, directory)  # takes the directory's lock
+    store = ReplayStore(cfg, directory, accept_loss)  # takes the directory's lock; may refuse a loss
     try:
         session = open_zenoh(zenoh_config)  # a port in use: one ZenohOpenError line
     except BaseException:

@@ -9,6 +9,7 @@ import argparse
 import difflib
 import json
 import logging
+import re
 import sys
 from collections.abc import Callable
 
@@ -36,7 +37,8 @@ EXAMPLES = {
               "  romannet bench pick-geometry --hands panda,rg2 --cube-sizes 0.05,0.04\n"
               "  sudo romannet bench faults --json   # network namespaces: root"),
     "sim": "romannet sim snapshot --task stacking --seed 3 --out snapshot.png --action pick:112:90:30",
-    "replay": "romannet replay --config configs/default.toml --dir runs/default/replay --listen tcp/127.0.0.1:7447",
+    "replay": "romannet replay --config configs/default.toml --dir runs/default/replay --listen tcp/127.0.0.1:7447\n"
+              "  romannet replay --check runs/default/replay",
     "learner": ("romannet learner --config configs/default.toml --run-dir runs/default/learner "
                 "--connect tcp/127.0.0.1:7447\n  romannet learner --run-dir runs/default/learner --resume "
                 "--connect tcp/127.0.0.1:7447\n  romannet learner --config configs/default.toml --run-dir "
@@ -314,7 +316,7 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="romannet",
         description="RoManNet fleet: actors, replay server and learner over Eclipse Zenoh.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -355,7 +357,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = verb("replay", "run the prioritized replay server over Zenoh until SIGTERM/SIGINT", cmd_replay)
     _add_config_args(p)
-    p.add_argument("--dir", required=True, metavar="DIR", help="where the log segments and snapshots live")
+    p.add_argument("--dir", metavar="DIR", help="where the log segments and snapshots live")
+    p.add_argument("--check", metavar="DIR", help="read and check every held item of a replay directory, report "
+                   "damage and losses, and exit (1 if anything is wrong); writes nothing")
+    p.add_argument("--accept-loss", action="store_true",
+                   help="start even if recovery finds acknowledged items it cannot get back (they are recorded "
+                   "in DIR/losses.json); without it the server refuses to start and names them")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
@@ -472,6 +479,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_mcap_arguments(verb("mcap", MCAP_SUMMARY, cmd_mcap))
     return parser
+
+
+def with_choice_hint(message: str) -> str:
+    """argparse's "invalid choice: 'replya' (choose from ...)" with "; did you mean replay?" for a near miss."""
+    m = re.fullmatch(r"argument .+?: invalid choice: '(.*)' \(choose from (.*)\)", message, re.DOTALL)
+    if m is None:
+        return message
+    close = difflib.get_close_matches(m[1], re.findall(r"'([^']*)'", m[2]), n=1, cutoff=0.6)
+    return f"{message}; did you mean {close[0]}?" if close else message
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose invalid-choice errors suggest the choice meant (verbs, tools, --task values).
+    Sub-command parsers are of the same class (add_subparsers' default), so every level has it."""
+
+    def error(self, message: str):  # type: ignore[override]
+        super().error(with_choice_hint(message))
 
 
 def chosen_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
