@@ -175,3 +175,20 @@ def test_every_benchmark_and_deploy_tool_has_a_description_and_an_example() -> N
         description = text.split("\n\n")[1]
         assert len(description.split()) > 10, (tool, description)  # a paragraph, not the usage again
         assert f"example:\n  {'sudo ' if tool == 'faults' else ''}romannet {verb} {tool} " in text, text
+
+
+def test_mistyped_verb_gets_the_verb_meant() -> None:
+    out = romannet("replya", "--dir", "x")
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert out.stderr.strip().splitlines()[-1].endswith("; did you mean replay?"), out.stderr
+
+
+def test_choice_hints() -> None:
+    from romannet.cli import with_choice_hint
+
+    msg = "argument <tool>: invalid choice: 'cert' (choose from 'certs', 'configs', 'check')"
+    assert with_choice_hint(msg) == msg + "; did you mean certs?"
+    far = "argument <benchmark>: invalid choice: 'zzz' (choose from 'inference', 'faults')"
+    assert with_choice_hint(far) == far
+    assert with_choice_hint("the following arguments are required: --out") == \
+        "the following arguments are required: --out"
