@@ -47,6 +47,48 @@ log = logging.getLogger("romannet.eval")
 
 EXAMPLE = "romannet eval runs/stack-h4 --task stacking --goal-height 2 3 4 5 --runs 30"
 
+# The flags of one task's scenes; any other task would ignore them.
+TASK_FLAGS = {"--objects": "clutter", "--object-set": "clutter", "--goal-height": "stacking", "--cases": "arrangement"}
+# Tasks a net carries over to: arrangements are the clutter-trained policy's test cases (the paper trains on
+# clutter and tests on them); stacking places what the removal tasks push and pick away.
+TASK_FAMILY = {"clutter": "removal", "arrangement": "removal", "stacking": "stacking"}
+
+
+class _Given(argparse.Action):
+    """Stores the value and notes the flag in namespace.given: a default is not a choice the user made."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        setattr(namespace, self.dest, values)
+        namespace.given = {*getattr(namespace, "given", ()), self.option_strings[0]}
+
+
+def foreign_task_flags(task: str, given: set[str]) -> str | None:
+    """One line on the flags given that `task`'s scenes would ignore, or None when every one applies."""
+    wrong = [flag for flag in TASK_FLAGS if flag in given and TASK_FLAGS[flag] != task]
+    if not wrong:
+        return None
+    own = " and ".join(flag for flag, t in TASK_FLAGS.items() if t == task)
+    if len(wrong) == 1:
+        return (f"{wrong[0]} is a {TASK_FLAGS[wrong[0]]} flag: {task} scenes would ignore it ({task} takes {own}; "
+                f"or pass --task {TASK_FLAGS[wrong[0]]})")
+    listing = ", ".join(f"{flag} ({TASK_FLAGS[flag]})" for flag in wrong)
+    return f"{listing} are flags of other tasks: {task} scenes would ignore them ({task} takes {own})"
+
+
+def task_misfit(trained: dict[str, Any] | None, task: str, use_push: bool) -> str | None:
+    """How evaluating on `task` (use_push: whether its runs may push) does not fit the task config a net was
+    trained with (the checkpoint's state.json), or None when it fits or the checkpoint does not say."""
+    if not trained:
+        return None
+    kind = trained.get("kind")
+    if kind in TASK_FAMILY and TASK_FAMILY.get(task) != TASK_FAMILY[kind]:
+        return f"trained on {kind}, tested on {task}"
+    if "use_push" in trained and bool(trained["use_push"]) != use_push:
+        return (f"trained {'with' if trained['use_push'] else 'without'} pushes, tested "
+                f"{'with' if use_push else 'without'} (task.use_push = {str(use_push).lower()})")
+    return None
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("checkpoints", nargs="*", metavar="CHECKPOINT",
@@ -57,17 +99,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "simulator's ceiling); random: random valid actions (the floor); both need no "
                         "checkpoint and run frozen")
     p.add_argument("--task", choices=["clutter", "arrangement", "stacking"],
-                   help="default: the run's (or --config's) task")
+                   help="default: the run's (or --config's) task; one the net was not trained for (stacking "
+                        "for a clutter net, or the other way) is refused without --force")
     p.add_argument("--protocol", choices=["paper", "frozen"], default="paper",
                    help="paper: weights reset to the checkpoint every run, learning within the run (default); "
                         "frozen: no learning")
     p.add_argument("--runs", type=int, default=30, metavar="N", help="runs per test case, each a new seed (30)")
     p.add_argument("--seed", type=int, default=100000, metavar="S", help="base seed of the test scenes")
-    p.add_argument("--objects", type=int, default=30, metavar="N", help="clutter: objects per scene (30)")
-    p.add_argument("--object-set", choices=["blocks", "novel"], default="blocks", help="clutter: object set")
-    p.add_argument("--cases", metavar="DIR", help="arrangement: a directory of case files (default: ours)")
-    p.add_argument("--goal-height", type=int, nargs="+", metavar="H", help="stacking: goal heights (default: "
-                   "the run's)")
+    p.add_argument("--objects", type=int, default=30, metavar="N", action=_Given,
+                   help="clutter: objects per scene (30)")
+    p.add_argument("--object-set", choices=["blocks", "novel"], default="blocks", action=_Given,
+                   help="clutter: object set")
+    p.add_argument("--cases", metavar="DIR", action=_Given,
+                   help="arrangement: a directory of case files (default: ours)")
+    p.add_argument("--goal-height", type=int, nargs="+", metavar="H", action=_Given,
+                   help="stacking: goal heights (default: the run's)")
     p.add_argument("--max-steps", type=int, default=0, metavar="N",
                    help="actions per run before it ends as step_limit (0: 5x the ideal count, at least 30)")
     p.add_argument("--workers", type=int, default=0, metavar="N", help="processes (0: one per CPU core)")
@@ -77,6 +123,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE.toml", help="use this config instead of the run's config.toml")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="override a config field (repeatable)")
+    p.add_argument("--force", action="store_true",
+                   help="evaluate a net on a task it was not trained for (a warning, not an error)")
 
 
 def _checkpoint_interval(run_dir: Path) -> str:
@@ -139,6 +187,7 @@ class CheckpointPlan:
     cases_dir: str | None
     specs: list  # of runner.RunSpec
     policy: str = "net"
+    warnings: tuple[str, ...] = ()  # what the report must say about the net (untrained, forced onto a task)
 
     @property
     def name(self) -> str:
@@ -165,10 +214,24 @@ def plan_checkpoint(args: argparse.Namespace, path: Path) -> CheckpointPlan:
     if trained_model is not None and trained_model != json.loads(json.dumps(_as_dict(cfg.model))):
         raise RomannetError(f"{ckpt} was trained with model config {trained_model}; the config says "
                             f"{_as_dict(cfg.model)}")
+    task = args.task or cfg.task.kind
+    foreign = foreign_task_flags(task, getattr(args, "given", set()))
+    if foreign is not None:
+        raise RomannetError(foreign)
+    warnings: list[str] = []
+    misfit = task_misfit(state.get("config", {}).get("task"), task, cfg.task.use_push)
+    if misfit is not None:
+        if not args.force:
+            raise RomannetError(f"{path} does not fit this evaluation: {misfit} (pass --force to evaluate it "
+                                "anyway)")
+        warnings.append(f"the net was {misfit} (--force)")
     if state.get("updates") == 0:
-        log.warning("%s is at update 0: an untrained net, so its numbers say nothing about learning", ckpt)
-    return _plan_tests(args, cfg, path=path, ckpt=ckpt, run_dir=run_dir, config_path=config_path, state=state,
-                       task=args.task or cfg.task.kind)
+        warnings.append("update 0: an untrained net, so these numbers say nothing about learning")
+    plan = _plan_tests(args, cfg, path=path, ckpt=ckpt, run_dir=run_dir, config_path=config_path, state=state,
+                       task=task, warnings=warnings)
+    for warning in warnings:
+        log.warning("%s: %s", path, warning)
+    return plan
 
 
 def plan_scripted(args: argparse.Namespace) -> CheckpointPlan:
@@ -196,12 +259,17 @@ def plan_scripted(args: argparse.Namespace) -> CheckpointPlan:
 
 
 def _plan_tests(args: argparse.Namespace, cfg: Any, *, path: Path | None, ckpt: Path | None,
-                run_dir: Path | None, config_path: Path | None, state: dict, task: str) -> CheckpointPlan:
+                run_dir: Path | None, config_path: Path | None, state: dict, task: str,
+                warnings: list[str] | None = None) -> CheckpointPlan:
     """The runs of an evaluation (cases, heights, seeds) under cfg; RomannetError on bad task flags."""
     from romannet.actor.sim.arrangements import default_cases_dir, load_case
     from romannet.common.configbase import dumps_toml
 
     from .protocol import plan_runs
+
+    foreign = foreign_task_flags(task, getattr(args, "given", set()))
+    if foreign is not None:
+        raise RomannetError(foreign)
 
     case_files: list[Path] = []
     case_objects: list[int] = []
@@ -220,7 +288,7 @@ def _plan_tests(args: argparse.Namespace, cfg: Any, *, path: Path | None, ckpt: 
     return CheckpointPlan(path=path, ckpt=ckpt, run_dir=run_dir, config_path=config_path,
                           config_toml=dumps_toml(cfg), state=state, task=task, heights=list(heights),
                           cases_dir=str(case_files[0].parent) if case_files else None, specs=specs,
-                          policy=args.policy)
+                          policy=args.policy, warnings=tuple(warnings or ()))
 
 
 def effective_protocol(args: argparse.Namespace) -> str:
@@ -278,7 +346,7 @@ def evaluate(args: argparse.Namespace, plan: CheckpointPlan, out_dir: Path) -> d
               "num_objects": args.objects if plan.task == "clutter" else None,
               "goal_heights": plan.heights if plan.task == "stacking" else None,
               "cases_dir": plan.cases_dir, "overrides": list(args.overrides),
-              "config": str(plan.config_path) if plan.config_path else "defaults"}
+              "config": str(plan.config_path) if plan.config_path else "defaults", "warnings": list(plan.warnings)}
     report = build_report(runs, header)
     paths = write_outputs(report, out_dir)
     print(markdown(report))

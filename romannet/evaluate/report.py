@@ -47,6 +47,8 @@ def markdown(report: dict[str, Any]) -> str:
     lines = [f"### {report['task']} — policy `{policy}` — protocol `{report['protocol']}`", "",
              f"{who}; {report['runs_per_case']} runs per case, seeds from {report['base_seed']}, "
              f"{report['workers']} worker process(es), {report['wall_s']:.0f} s on {report['machine']}."]
+    for warning in report.get("warnings") or ():
+        lines += ["", f"**Warning**: {warning}."]
     if report.get("interrupted"):
         lines.append(f"**Interrupted**: {len(report['runs'])} of {report['planned_runs']} planned runs finished.")
     lines += ["", "| case | runs | completion | pick success | action efficiency | pick success, all runs | "

@@ -118,9 +118,10 @@ class SweepPlan:
         return [*argv, "--config", str(job.recipe), *_sets(self.run_overrides(job))]
 
     def eval_argv(self, job: RunJob, out_dir: Path) -> list[str]:
-        """`romannet eval` of a run's newest checkpoint, frozen, on the sweep's test scenes."""
+        """`romannet eval` of a run's newest checkpoint, frozen, on the sweep's test scenes (--force: a task
+        other than the run's own is the sweep's choice, --eval-task)."""
         return [*_romannet(self.log_level), "eval", str(job.run_dir), *self.eval.argv(), *self._workers(),
-                "--out", str(out_dir)]
+                "--force", "--out", str(out_dir)]
 
     def policy_argv(self, policy: str, out_dir: Path) -> list[str]:
         """`romannet eval --policy oracle|random` under the first recipe and the sweep's --set values."""
