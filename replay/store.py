@@ -499,5 +499,6 @@ def _summary(losses: list[Loss]) -> str:
     """'N acknowledged item(s): <loss>; <loss>' in one line."""
     total = sum(loss.count for loss in losses)
     uncounted = any(loss.uncounted for loss in losses)
-    return (f"{total} acknowledged item(s){' or more' if uncounted else ''}: "
-            + "; ".join(describe(loss) for loss in losses))
+    head = f"{total} acknowledged item(s){' or more' if uncounted else ''}" if total else \
+        "an uncounted number of acknowledged items"
+    return f"{head}: " + "; ".join(describe(loss) for loss in losses)
