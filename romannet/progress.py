@@ -442,7 +442,7 @@ class RateWindow:
     """Units per second over (about) the last `window_s` seconds, from cumulative totals; a total that goes
     back (an actor restarted from zero) starts it over."""
 
-    def __init__(self, window_s: float = 120.0, min_span_s: float = 2.0):
+    def __init__(self, window_s: float = 120.0, min_span_s: float = 1.0):
         self.window_s, self.min_span_s = window_s, min_span_s
         self._samples: deque[tuple[float, float]] = deque()
 
