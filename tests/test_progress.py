@@ -197,3 +197,22 @@ def test_eval_progress_in_a_log_is_a_plain_line(tmp_path: Path) -> None:
     assert "eval: runs 1/4 (25%) | " in lines[0]
     assert re.search(r"eval: runs 4/4 \(100%\) \| [\d.]+ runs/(s|min) \| ETA 0s \| \d completed \| last h2 seed",
                      lines[1]), lines[1]
+
+
+def test_the_mcap_bar_places_by_fraction_and_counts_what_the_tool_handles(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    from romannet.mcaptools.bar import ProgressBar
+
+    monkeypatch.setenv("COLUMNS", "80")
+    caplog.set_level(logging.INFO, "romannet.progress")
+    screen = FakeTerminal()
+    with ProgressBar("feed", "transitions", stream=screen) as bar:
+        bar.update(0.42, "file 3/12 | 1200 transitions: 1100 new, 100 duplicate, 0 rejected", count=1200,
+                   force=True)
+        reading = bar.last
+    assert reading is not None and reading.fields == ("file 3/12", "1200 transitions: 1100 new, 100 duplicate, "
+                                                      "0 rejected")
+    drawn = [d for d in screen.getvalue().split("\r\033[K") if d]
+    assert drawn[0].startswith("feed  42%|") and "transitions/s, ETA" in drawn[0] and len(drawn[0]) <= 79
+    assert screen.getvalue().endswith("\r\033[K")  # the line is gone when the work is
+    assert not caplog.records  # on a terminal the plain line stays off the console handlers (caplog's is one)
