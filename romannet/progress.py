@@ -370,21 +370,17 @@ def fit_fields(fields: Sequence[str], room: int, sep: str = FIELD_SEP) -> str:
 @dataclass(frozen=True)
 class Reading:
     """What one progress line says. done/total place the bar (total None: no bar, no ETA); count is what the
-    rate counts when it is not `done` (the mcap tools place the bar by bytes and count transitions); eta is
-    seconds, or a caller's own text."""
+    rate counts when it is not `done` (the mcap tools place the bar by bytes and count transitions)."""
 
     label: str
     done: float
     total: float | None = None
     unit: str = ""
     rate: float | None = None  # per second, of count (or of done)
-    eta: float | str | None = None
+    eta: float | None = None  # seconds
     fields: tuple[str, ...] = ()
     counts_done: bool = True  # False: done/total is a fraction of the work, shown as a percentage only
     short_label: str | None = None  # on a terminal, where columns are few
-
-    def eta_text(self) -> str:
-        return self.eta if isinstance(self.eta, str) else format_duration(self.eta)
 
     def position(self) -> str:
         """`1050/2500 actions`, `1050 actions` without a total, `42%` for a fraction of the work."""
@@ -413,7 +409,7 @@ def plain_line(r: Reading) -> str:
         where = r.position()
     parts = [f"{r.label}: {where}", format_rate(r.rate, r.unit)]
     if r.total or r.eta is not None:
-        parts.append(f"ETA {r.eta_text()}")
+        parts.append(f"ETA {format_duration(r.eta)}")
     return FIELD_SEP.join([*parts, *r.fields])
 
 
@@ -426,11 +422,14 @@ def terminal_line(r: Reading, columns: int, ascii_only: bool = False) -> str:
     rate = format_rate(r.rate, "" if r.counts_done else r.unit)
     stats = f"{r.position()}, {rate}" if r.counts_done else f"{rate}"
     if r.total or r.eta is not None:
-        stats += f", ETA {r.eta_text()}"
+        stats += f", ETA {format_duration(r.eta)}"
     if not r.total:
         head = f"{label} {stats}"
         return disp_trim(head + fit_fields(r.fields, width - disp_len(head)), width)
     fixed = f"{label} 100%|| {stats}"
+    if disp_len(fixed) + MIN_BAR > width:  # no room for a bar worth the name: the percentage says it
+        head = f"{label} {100 * _fraction(r.done, r.total):.0f}% {stats}"
+        return disp_trim(head + fit_fields(r.fields, width - disp_len(head)), width)
     shown = fit_fields(r.fields, width - disp_len(fixed) - MIN_BAR)
     tail = f" {stats}{shown}".replace("{", "{{").replace("}", "}}")
     ncols = min(width, disp_len(fixed) + len(shown) + MAX_BAR)
@@ -520,7 +519,7 @@ class Progress:
         self.last: Reading | None = None
 
     def reading(self, done: float, fields: Sequence[str] = (), *, count: float | None = None,
-                eta: float | str | None = None, now: float | None = None) -> Reading:
+                eta: float | None = None, now: float | None = None) -> Reading:
         """Record done (and count) at now; the Reading a line is drawn from."""
         now = time.monotonic() if now is None else now
         self._done_rate.add(now, done)
@@ -538,9 +537,9 @@ class Progress:
         self._done_rate, self._count_rate = RateWindow(self._window_s), RateWindow(self._window_s)
 
     def update(self, done: float, fields: Sequence[str] = (), *, count: float | None = None,
-               eta: float | str | None = None, force: bool = False) -> None:
+               eta: float | None = None, force: bool = False) -> None:
         """Show progress: done of total (count: what the rate counts, if not done); fields most important
-        first; eta in seconds or as text when the caller knows better than done/rate."""
+        first; eta in seconds when the caller knows better than done/rate (the sweep's covers what follows)."""
         now = time.monotonic()
         self.last = self.reading(done, fields, count=count, eta=eta, now=now)
         if self.tty and (force or now >= self._next_draw):

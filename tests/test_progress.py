@@ -105,8 +105,11 @@ def test_the_plain_line_keeps_every_field() -> None:
     line = plain_line(Reading("up", snap.actions, 2500, "actions", 1.234, 1180.0, tuple(fleet_fields(snap))))
     assert line.startswith("up: actions 1050/2500 (42%) | 1.23 actions/s | ETA 19m40s | PAUSED actor-2 | pick 45%")
     assert line.endswith("weights actor-0:v1210 actor-1:v1211 actor-2:v1212 PAUSED actor-3:v1213")
-    sweep = plain_line(Reading("sweep: run 1 of 6 stacking-s1", 364, 2500, "actions", 0.41, "2h01m + evaluations"))
-    assert sweep == "sweep: run 1 of 6 stacking-s1: actions 364/2500 (15%) | 24.6 actions/min | ETA 2h01m + evaluations"
+    sweep = Reading("sweep: run 12 of 18 clutter-demos-s0", 1364, 2500, "actions", 0.41, 7260.0,
+                    ("+ evaluations",), short_label="run 12/18 clutter-demos-s0")
+    assert plain_line(sweep) == ("sweep: run 12 of 18 clutter-demos-s0: actions 1364/2500 (55%) | 24.6 actions/min | "
+                                 "ETA 2h01m | + evaluations")
+    assert terminal_line(sweep, 80) == "run 12/18 clutter-demos-s0 55% 1364/2500 actions, 24.6/min, ETA 2h01m"
 
 
 class FakeTerminal(io.StringIO):

@@ -227,7 +227,8 @@ class Sweep:
                     self.done[job.name] = run_actions(job.run_dir)
                 except RomannetError:  # a ledger being replaced right now: the next tick reads it
                     pass
-                self.display.update(self.done[job.name], eta=training_eta(self.pace(time.monotonic() - started)))
+                eta, note = training_eta(self.pace(time.monotonic() - started))
+                self.display.update(self.done[job.name], note, eta=eta)
 
             code = run_child(self.plan.up_argv(job, resume=state is RunState.PARTIAL), log_path, self.stops, tick)
             self.training_s += time.monotonic() - started

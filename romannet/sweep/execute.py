@@ -97,13 +97,13 @@ def format_duration(seconds: float | None) -> str:
     return f"{minutes // 60}h{minutes % 60:02d}m" if minutes >= 60 else f"{minutes}m" if minutes else "<1m"
 
 
-def training_eta(pace: Pace) -> float | str | None:
-    """The sweep's ETA while a run trains: seconds for the whole sweep, or the training's with a note when
-    no evaluation has been timed yet."""
+def training_eta(pace: Pace) -> tuple[float | None, list[str]]:
+    """The sweep's ETA while a run trains: seconds for the whole sweep, or the training's with a note (a
+    progress field) while no evaluation has been timed yet."""
     eta = eta_s(pace)
     if eta is not None or pace.actions_gained <= 0:
-        return eta
-    return f"{format_duration(_training_only(pace))} + evaluations"
+        return eta, []
+    return _training_only(pace), ["+ evaluations"]
 
 
 def eval_eta(elapsed_s: float, pace: Pace) -> float | None:
