@@ -343,7 +343,7 @@ def format_duration(seconds: float | None) -> str:
 
 
 def format_rate(per_s: float | None, unit: str) -> str:
-    """`12.3 actions/s`, `3.0 runs/min` or `2.0 runs/h` (whichever keeps the number at 1 or more); `-` when
+    """`12.3 actions/s`, `3 runs/min` or `2 runs/h` (whichever keeps the number at 1 or more); `-` when
     unknown."""
     unit = f" {unit}" if unit else ""
     if per_s is None or per_s != per_s:
@@ -432,7 +432,7 @@ def terminal_line(r: Reading, columns: int, ascii_only: bool = False) -> str:
         return disp_trim(head + fit_fields(r.fields, width - disp_len(head)), width)
     shown = fit_fields(r.fields, width - disp_len(fixed) - MIN_BAR)
     tail = f" {stats}{shown}".replace("{", "{{").replace("}", "}}")
-    ncols = min(width, disp_len(fixed) + len(shown) + MAX_BAR)
+    ncols = min(width, disp_len(fixed) + disp_len(shown) + MAX_BAR)
     return tqdm.format_meter(_fraction(r.done, r.total), 1, 0, ncols=ncols, prefix=label, ascii=ascii_only,
                              bar_format="{desc} {percentage:3.0f}%|{bar}|" + tail)
 
