@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from _damage import chunks, flip_in_chunk, write
 from _episodes import SIDE_PX, record_episode
 from mcap.writer import Writer
 
@@ -86,29 +87,16 @@ def test_unfinished_and_cut_files_read_up_to_the_last_whole_chunk(episodes, tmp_
             full.transitions[:count_steps(tmp_path / "c.mcap")]
 
 
-def test_a_damaged_chunk_ends_the_read_there(episodes, tmp_path: Path) -> None:
+def test_a_damaged_chunk_costs_that_chunk_only(episodes, tmp_path: Path) -> None:
     _, full, _ = episodes
-    data = bytearray(full.path.read_bytes())
-    # A byte in the middle of the records of the last chunk but one: that chunk's CRC no longer matches. Found
-    # by walking the records (opcode, length, body), not at a fixed share of the file: a fixed offset landed
-    # outside the checked bytes once the recorded config grew.
-    chunks, offset = [], 8  # after the magic
-    while offset + 9 <= len(data) and data[offset] != 0x02:  # 0x02: footer
-        opcode, length = data[offset], int.from_bytes(data[offset + 1:offset + 9], "little")
-        if opcode == 0x06:
-            body = offset + 9
-            comp_len = int.from_bytes(data[body + 28:body + 32], "little")
-            records = body + 32 + comp_len + 8
-            chunks.append((records, body + length))
-        offset += 9 + length
-    assert len(chunks) >= 3
-    start, end = chunks[-2]
-    data[(start + end) // 2] ^= 0xFF
-    (tmp_path / "bad.mcap").write_bytes(bytes(data))
-    ep = read_episode(tmp_path / "bad.mcap")
-    assert not ep.health.complete
+    data = full.path.read_bytes()
+    # A byte in the middle of the records of the last chunk but one (found by walking the records, see
+    # tests/_damage.py): that chunk's CRC no longer matches, it is skipped and reading goes on after it.
+    assert len(chunks(data)) >= 3
+    ep = read_episode(write(tmp_path / "bad.mcap", flip_in_chunk(data, -2)))
+    assert ep.health.state == "damaged" and "CRC does not match" in ep.health.damage[0]
     got = [m.data for m in ep.of(TRANSITION_TOPIC)]
-    assert got == full.transitions[:len(got)] and len(got) < len(full.transitions)
+    assert len(got) == len(full.transitions) - 1 and got == [t for t in full.transitions if t in got]
 
 
 def _foreign_mcap(path: Path, with_metadata: bool) -> None:
@@ -162,8 +150,14 @@ def test_steps_pair_each_transition_with_its_observations_and_q_maps(episodes) -
 def test_inspect_reports_episodes_truncation_and_bad_files(episodes, tmp_path: Path, capsys) -> None:
     root, full, _ = episodes
     whole = _cut_in_the_middle(full.path, tmp_path / "cut.mcap")
+    # A truncated or unfinished file (what a crashed writer leaves) is read up to its last whole chunk: exit 0,
+    # except with --verify, which exits 1 for anything less than a complete, intact file, naming each.
     code, out, err = _run(capsys, "mcap", "inspect", str(root), str(tmp_path / "cut.mcap"), "--json", "--verify")
-    assert code == 0, err
+    assert code == 1 and err.count("\n") == 2 and "Traceback" not in err
+    assert f"{root / 'a1' / 'ep000001.mcap'}: truncated" in err and f"{tmp_path / 'cut.mcap'}: truncated" in err
+    assert json.loads(out)["totals"]["truncated"] == 2
+    code, out, err = _run(capsys, "mcap", "inspect", str(root), str(tmp_path / "cut.mcap"), "--json")
+    assert code == 0 and err == ""
     report = json.loads(out)
     a0, a1, cut = report["episodes"]
     assert (a0["steps"], a0["health"], a0["end_reason"]) == (6, "complete", "step_limit")

@@ -54,11 +54,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
 
     t = tool("inspect", "per episode: task, actor, seed, steps, actions and successes by primitive, rewards, end "
-             "reason, weights versions, duration, file health (a truncated file is read up to its last whole chunk)")
+             "reason, weights versions, duration, file health (a truncated file is read up to its last whole "
+             "chunk; in a damaged one each damaged chunk or record is named and skipped and the rest is read). "
+             "Every file is reported; exit code 1 if any file is not an episode, is damaged or holds invalid "
+             "transitions (each named in one line on stderr), 0 otherwise")
     t.add_argument("inputs", nargs="+", metavar="FILE|DIR", help="episode files, or directories of *.mcap")
     t.add_argument("--json", action="store_true", help="print one JSON object")
     t.add_argument("--verify", action="store_true",
-                   help="decode and validate every transition (pixels too), as the replay server and learner do")
+                   help="decode and validate every transition (pixels too), as the replay server and learner do; "
+                   "exit code 1 also for a file that is truncated or unfinished")
 
     t = tool("play", "play an episode back in recorded order and time to a Foxglove WebSocket server and/or on "
              "the actor's live Zenoh keys (romannet/@v1/<run>/actor/<actor>/live/<topic>)")
@@ -81,7 +85,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     _zenoh_args(t)
 
     t = tool("feed", "send the recorded transitions to a running replay server, acknowledged, with a progress "
-             "bar; feeding the same files again adds nothing (idempotent keys)")
+             "bar; feeding the same files again adds nothing (idempotent keys). A file that is not an episode "
+             "is skipped, of a damaged one every intact chunk is fed, of a truncated one all up to its last "
+             "whole chunk; exit code 1 if a file was skipped or damaged (each named in one line on stderr) or "
+             "a transition rejected, 0 otherwise")
     t.add_argument("inputs", nargs="+", metavar="FILE|DIR")
     t.add_argument("--json", action="store_true", help="print one JSON object")
     _feed_args(t)
@@ -137,8 +144,16 @@ def run(args: argparse.Namespace) -> int:
     return run_rescore(args)
 
 
+def inspect_failed(episode: dict, verify: bool) -> bool:
+    """Whether one file's summary makes `inspect` exit 1: damage or invalid transitions, and with --verify
+    also a file that ends early (cut, or its writer did not finish it)."""
+    return (episode["health"] == "damaged" or bool(episode["invalid_transitions"])
+            or (verify and episode["health"] != "complete"))
+
+
 def run_inspect(args: argparse.Namespace) -> int:
-    """`romannet mcap inspect`; exit code 1 if a file is not an episode or holds invalid transitions."""
+    """`romannet mcap inspect`; every file is reported, then exit code 1 if one was skipped (not an
+    episode) or failed (see inspect_failed), each named in one line on stderr."""
     from romannet.common.episode_file import EpisodeFileError, episode_paths
 
     from .summary import format_episode, format_totals, summarize, to_json
@@ -146,10 +161,14 @@ def run_inspect(args: argparse.Namespace) -> int:
     episodes, errors = [], []
     for path in episode_paths(args.inputs):
         try:
-            episodes.append(summarize(path, verify=args.verify))
+            episode = summarize(path, verify=args.verify)
         except EpisodeFileError as err:
             errors.append(str(err))
             sys.stderr.write(f"romannet mcap inspect: error: {err}\n")
+            continue
+        episodes.append(episode)
+        if inspect_failed(episode, args.verify) and episode["health"] != "complete":
+            sys.stderr.write(f"romannet mcap inspect: error: {path}: {episode['health_detail']}\n")
     if args.json:
         sys.stdout.write(to_json(episodes, errors) + "\n")
     else:
@@ -159,4 +178,4 @@ def run_inspect(args: argparse.Namespace) -> int:
             from .summary import totals
 
             sys.stdout.write("total: " + format_totals(totals(episodes)) + "\n")
-    return 1 if errors or any(e["invalid_transitions"] for e in episodes) else 0
+    return 1 if errors or any(inspect_failed(e, args.verify) for e in episodes) else 0

@@ -2,7 +2,9 @@
 
 Per episode: run, actor, episode id, task, seed, steps, actions and successes by primitive, explored
 actions, rewards, progress at the end, end reason, weights versions and exploration rates, duration,
-heightmap size, messages per topic, and the file's health (complete, or truncated with how much was read).
+heightmap size, messages per topic, and the file's health: complete, truncated (it ends early: read up to
+its last whole chunk) or damaged (each damaged part named and skipped, the rest read), with the steps read
+of those the file's summary counts.
 Transitions are parsed as protobuf without decoding their pixels; --verify decodes and validates each one
 with the same decoder the replay server and the learner use.
 """
@@ -97,8 +99,9 @@ def summarize(path: str | Path, verify: bool = False) -> dict[str, Any]:
     if last is not None and tally.first_start_ns is not None:
         duration_s = round((int(last.end_ns) - tally.first_start_ns) / 1e9, 3)
     return {
-        "path": str(path), "health": "complete" if health.complete else "truncated",
-        "health_detail": health.describe(), "file_bytes": health.file_bytes, "read_bytes": health.read_bytes,
+        "path": str(path), "health": health.state, "health_detail": health.describe(),
+        "damage": list(health.damage), "file_bytes": health.file_bytes, "read_bytes": health.read_bytes,
+        "skipped_bytes": health.skipped_bytes, "steps_recorded": health.expected.get(TRANSITION_TOPIC),
         "run_id": meta.get("run_id"), "actor_id": meta.get("actor_id"), "episode_id": meta.get("episode_id"),
         "task": meta.get("task"), "seed": _number(meta.get("seed")),
         "steps": steps, "step_records": topics[STEP_TOPIC], "invalid_transitions": tally.invalid,
@@ -133,7 +136,8 @@ def totals(episodes: list[dict[str, Any]]) -> dict[str, Any]:
         actions.update(e["actions"])
         successes.update(e["successes"])
     steps = sum(e["steps"] for e in episodes)
-    return {"episodes": len(episodes), "steps": steps, "truncated": sum(e["health"] != "complete" for e in episodes),
+    return {"episodes": len(episodes), "steps": steps, "truncated": sum(e["health"] == "truncated" for e in episodes),
+            "damaged": sum(e["health"] == "damaged" for e in episodes),
             "completed": sum(e["end_reason"] == "done" for e in episodes),
             "actions": dict(actions), "successes": dict(successes),
             "pick_success": successes["pick"] / actions["pick"] if actions["pick"] else None,
@@ -149,7 +153,9 @@ def format_episode(e: dict[str, Any]) -> str:
     acts = ", ".join(f"{p} {e['successes'][p]}/{n}" for p, n in e["actions"].items()) or "none"
     wv = e["weights_versions"]
     versions = "-" if wv["min"] is None else (f"v{wv['min']}" if wv["min"] == wv["max"] else f"v{wv['min']}..v{wv['max']}")
-    health = "complete" if e["health"] == "complete" else e["health_detail"].replace("truncated", "TRUNCATED", 1)
+    health = e["health_detail"].replace("truncated", "TRUNCATED", 1).replace("damaged", "DAMAGED", 1)
+    if e["steps_recorded"] is not None and e["steps_recorded"] != e["steps"]:
+        health += f"; {e['steps']} of {e['steps_recorded']} steps read"
     lines = [f"{e['path']}  [{health}, {_kb(e['file_bytes'])}]",
              f"  run {e['run_id']} | actor {e['actor_id']} | episode {e['episode_id']} | task {e['task']} | "
              f"seed {e['seed']}" + (" | rescored" if e["rescored"] else ""),
@@ -167,7 +173,7 @@ def format_episode(e: dict[str, Any]) -> str:
 def format_totals(t: dict[str, Any]) -> str:
     pick = "-" if t["pick_success"] is None else f"{100 * t['pick_success']:.1f} %"
     return (f"{t['episodes']} episode(s), {t['steps']} steps, {t['completed']} completed, {t['truncated']} "
-            f"truncated; pick success {pick}; reward sum {t['reward_sum']:.3f}")
+            f"truncated, {t['damaged']} damaged; pick success {pick}; reward sum {t['reward_sum']:.3f}")
 
 
 def to_json(episodes: list[dict[str, Any]], errors: list[str]) -> str:
