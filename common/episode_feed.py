@@ -73,6 +73,7 @@ class FeedReport:
     rejected_reasons: Counter[str] = field(default_factory=Counter)
     truncated_files: list[str] = field(default_factory=list)
     failed_files: dict[str, str] = field(default_factory=dict)  # path -> error (not an episode, ...)
+    damaged_files: dict[str, str] = field(default_factory=dict)  # path -> what is damaged (the rest was fed)
     read_bytes: int = 0  # of all files, for progress
     seconds: float = 0.0
 
@@ -166,11 +167,26 @@ def feed_stream(client: EncodedInserter, items: Iterable[tuple[bytes, int]], rep
             raise
 
 
+def _note_health(report: FeedReport, path: Path, reader: EpisodeReader) -> None:
+    """A damaged file (fed but for its damaged parts) or one that ends early, in the report and one log line."""
+    health = reader.health
+    if health is None:  # the feed stopped inside this file
+        return
+    if health.damaged:
+        report.damaged_files[str(path)] = health.describe()
+        log.error("%s: %s", path, health.describe())
+    elif not health.complete:
+        report.truncated_files.append(str(path))
+        log.warning("%s: %s", path, health.describe())
+
+
 def feed_files(client: EncodedInserter, paths: Sequence[Path], opts: FeedOptions | None = None,
                on_progress: Callable[[FeedProgress], None] | None = None,
                stop: threading.Event | None = None) -> FeedReport:
     """Feed every transition of every episode file; a file that is not an episode is recorded in
-    report.failed_files (and logged) and the others are fed. Raises FeedError on a lasting outage."""
+    report.failed_files (and logged) and the others are fed; of a damaged file every intact chunk is fed
+    and the file is recorded in report.damaged_files (and logged, one line naming the damage); a truncated
+    one is fed up to its last whole chunk (report.truncated_files). Raises FeedError on a lasting outage."""
     opts = opts or FeedOptions()
     report = FeedReport()
     sizes = [p.stat().st_size if p.is_file() else 0 for p in paths]
@@ -192,9 +208,7 @@ def feed_files(client: EncodedInserter, paths: Sequence[Path], opts: FeedOptions
             log.error("%s", err)
         else:
             report.files += 1
-            if reader.health is not None and not reader.health.complete:
-                report.truncated_files.append(str(path))
-                log.warning("%s: %s", path, reader.health.describe())
+            _note_health(report, path, reader)
         before += size
         report.read_bytes = before
     report.seconds = time.monotonic() - started

@@ -6,6 +6,10 @@ actor uses (common/episode_feed.py), then train as usual. Without actors that is
 recordings (real-robot episodes, say); with actors attached the buffer holds recorded and live
 experience side by side and the learner samples both by priority. A restarted learner feeds the files
 again and the replay answers "duplicate" for each: nothing is added twice.
+
+Damaged recordings do not stop it: a file that is not an episode is skipped and of a damaged one every
+intact chunk is fed, each named in one log line, and the summary line counts them; the learner then trains
+(its exit code is about training, not the recordings; `romannet mcap inspect --verify` checks them).
 """
 
 from __future__ import annotations
@@ -50,13 +54,27 @@ def prefill(client: _Ready, inputs: Sequence[str | Path], stop: threading.Event,
                      p.report.accepted)
 
     report = feed_files(client, paths, opts or FeedOptions(), on_progress, stop)
-    log.info("offline: %d file(s), %d transitions: %d new, %d already in the replay, %d rejected%s, in %.1f s",
+    log.info("offline: %d file(s), %d transitions: %d new, %d already in the replay, %d rejected%s, in %.1f s%s",
              report.files, report.transitions, report.accepted, report.duplicates, report.rejected,
-             f" ({dict(report.rejected_reasons)})" if report.rejected else "", report.seconds)
+             f" ({dict(report.rejected_reasons)})" if report.rejected else "", report.seconds, damage_note(report))
     if report.transitions and not (report.accepted or report.duplicates):
         raise RomannetError(f"--offline: the replay server refused every recorded transition "
                             f"({dict(report.rejected_reasons)}): were they recorded with this run's [workspace] "
                             "(heightmap size)?")
-    if report.failed_files:
-        log.warning("offline: %d file(s) skipped: %s", len(report.failed_files), report.failed_files)
+    if not report.transitions and (report.failed_files or report.damaged_files):
+        log.error("offline: none of the %d recorded file(s) held a readable transition: nothing to train on from "
+                  "them (each is named above)", len(paths))
     return report
+
+
+def damage_note(report: FeedReport) -> str:
+    """'; 2 damaged file(s) fed but for their damaged parts, 1 skipped (not an episode)' or ''. Each such
+    file has its own log line (common/episode_feed.py); this is the count for the summary line."""
+    parts = []
+    if report.damaged_files:
+        parts.append(f"{len(report.damaged_files)} damaged file(s) fed but for their damaged parts")
+    if report.failed_files:
+        parts.append(f"{len(report.failed_files)} skipped (not an episode)")
+    if report.truncated_files:
+        parts.append(f"{len(report.truncated_files)} truncated, fed up to their last whole chunk")
+    return "; " + ", ".join(parts) if parts else ""

@@ -159,7 +159,7 @@ def export_episode(path: str | Path, sink: FrameSink, panel_px: int = 448,
         sink.write(compose(step_view(step, episode_id, geometry), panel_px))
         if on_progress is not None:
             on_progress(step.transition.end_offset / max(reader.file_bytes, 1), sink.count)
-    if reader.health is not None and not reader.health.complete:
+    if reader.health is not None and (not reader.health.complete or reader.health.damaged):
         log.warning("%s: %s", path, reader.health.describe())
     return sink.count
 

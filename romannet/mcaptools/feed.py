@@ -63,6 +63,8 @@ def format_report(report: FeedReport, run_id: str, replay_size: int | None) -> s
         text += f"; {len(report.truncated_files)} truncated file(s) fed up to their last whole chunk"
     if report.rejected_reasons:
         text += f"; rejected: {dict(report.rejected_reasons)}"
+    if report.damaged_files:
+        text += f"; {len(report.damaged_files)} damaged file(s) fed but for their damaged parts"
     if report.failed_files:
         text += f"; {len(report.failed_files)} file(s) skipped (not episodes)"
     if replay_size is not None:
@@ -71,7 +73,8 @@ def format_report(report: FeedReport, run_id: str, replay_size: int | None) -> s
 
 
 def run_feed(args: argparse.Namespace) -> int:
-    """`romannet mcap feed`; exit code 0 when every transition was accepted or a duplicate."""
+    """`romannet mcap feed`; exit code 0 when every transition was accepted or a duplicate, 1 when one was
+    rejected or a file was skipped (not an episode) or damaged (its intact chunks fed), each named on stderr."""
     paths = episode_paths(args.inputs)
     run_id = resolve_run_id(args.run_id, paths)
     opts = FeedOptions(insert_timeout_s=args.timeout, give_up_after_s=args.give_up_after, window=args.window)
@@ -91,10 +94,10 @@ def run_feed(args: argparse.Namespace) -> int:
             replay_size: int | None = int(client.stats(timeout_s=5.0)["size"])
         except (TimeoutError, RomannetError, KeyError, ValueError):
             replay_size = None
-    for path, problem in report.failed_files.items():
+    for path, problem in {**report.failed_files, **report.damaged_files}.items():
         sys.stderr.write(f"romannet mcap feed: error: {path}: {problem}\n")
     if args.json:
         sys.stdout.write(json.dumps({"run_id": run_id, "replay_size": replay_size, **report.as_dict()}) + "\n")
     else:
         sys.stdout.write(format_report(report, run_id, replay_size) + "\n")
-    return 0 if not (report.rejected or report.failed_files or stop.is_set()) else 1
+    return 0 if not (report.rejected or report.failed_files or report.damaged_files or stop.is_set()) else 1

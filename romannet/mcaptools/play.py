@@ -120,7 +120,7 @@ def run_play(args: argparse.Namespace) -> int:
     opts = PlayOptions(speed=args.speed, max_gap_s=args.max_gap, loop=args.loop)
     reader, total = scan(args.file)
     assert reader.health is not None
-    if not reader.health.complete:
+    if not reader.health.complete or reader.health.damaged:
         log.warning("%s: %s", args.file, reader.health.describe())
     stop = threading.Event()
     with stop_on_signals(stop, "stopping the playback"), _sinks(args, reader, stop) as sinks:

@@ -247,7 +247,7 @@ def rescore_file(path: str | Path, settings: RescoreSettings, out_dir: Path | No
         if writer is not None and END_METADATA in reader.metadata:
             writer.add_metadata(END_METADATA, reader.metadata[END_METADATA])
     result.episode_id = ep.episode_id if ep is not None else ""
-    result.truncated = reader.health is None or not reader.health.complete
+    result.truncated = reader.health is None or not reader.health.complete or reader.health.damaged
     return result
 
 

@@ -36,7 +36,7 @@ def format_result(r: FileResult) -> str:
     where = r.output or "(not written)"
     return (f"{r.source} -> {where}: {r.steps} steps, X changed on {r.success_changed}, reward changed on "
             f"{r.reward_changed}; reward sum {r.reward_sum_recorded:.3f} -> {r.reward_sum:.3f}"
-            + (" (source truncated)" if r.truncated else ""))
+            + (" (source truncated or damaged: read but for those parts)" if r.truncated else ""))
 
 
 def run_rescore(args: argparse.Namespace) -> int:
