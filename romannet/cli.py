@@ -383,7 +383,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_zenoh_config_arg(p)
     p.add_argument("--offline", action="append", default=[], metavar="FILE|DIR",
                    help="first feed these MCAP episode recordings to the replay server (acknowledged, idempotent), "
-                        "then train: without actors, or mixed with live ones (repeatable)")
+                        "then train: without actors, or mixed with live ones (repeatable). A file that is not an "
+                        "episode is skipped, of a damaged one every intact chunk is fed, each named in one log "
+                        "line; training goes on (check recordings with `romannet mcap inspect --verify`)")
     p.add_argument("--max-updates", type=int, default=0, metavar="N",
                    help="stop (checkpoint, exit 0) once the learner reaches update N (default: 0 = until a signal)")
     p.add_argument("--init-from", metavar="DIR",

@@ -86,7 +86,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--from-recordings", action="append", default=[], metavar="FILE|DIR",
                    help="pre-fill the replay server with these MCAP episode recordings (the learner feeds them, "
                    "acknowledged and idempotent, before it trains); with actors, recorded and live experience "
-                   "mix (repeatable)")
+                   "mix (repeatable). A damaged file costs only its damaged chunks and a file that is not an "
+                   "episode is skipped, each named in one line of logs/learner.log; the run goes on")
     p.add_argument("--max-actions", type=int, metavar="N",
                    help="total actions of the run over the whole fleet, split evenly between the actors; the "
                    "launcher stops everything cleanly when every actor has done its share; with --resume "
