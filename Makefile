@@ -19,10 +19,11 @@ $(STAMP): $(PY) pyproject.toml
 
 install: $(STAMP)
 
-# The whole fleet on this machine (replay server, learner, 2 simulated actors) until Ctrl-C; results in
-# runs/<name>/. Extra flags go in ARGS, e.g. `make run ARGS="--max-actions 2000 --robot gripper"`.
+# The best measured recipe as it was measured (dense clutter; 1 simulated actor, 2,500 actions), the whole
+# fleet on this machine; results in runs/<name>/. Extra flags go in ARGS and win, e.g.
+# `make run ARGS="--actors 2 --max-actions 0"` (0: until Ctrl-C).
 run: $(STAMP)
-	$(VENV)/bin/romannet up $(ARGS)
+	$(VENV)/bin/romannet up --config configs/experiments/clutter.toml --actors 1 --max-actions 2500 $(ARGS)
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -126,7 +126,7 @@ class ModelConfig:
     # tried); "small" = that init times 0.01, so every Q map starts within a few hundredths of 0, below any
     # reward, and its peaks come from what was learned. (Not zero: a flat map gives the argmax and the
     # exploration candidates no order but the pixel index, and failures, labelled 0, give it no gradient.)
-    q_head_init: Literal["default", "small"] = "default"
+    q_head_init: Literal["default", "small"] = "small"
     # Inference numerics: "auto" picks bf16 where the CPU supports it natively, else fp32.
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     channels_last: bool = True
@@ -197,10 +197,11 @@ class ExplorationConfig:
     sigma: float = 0.33  # inverse sensitivity (the authors' code)
     beta: float = 0.25
     initial_rate: float = 0.5
-    # A floor under the LAE rate the actors use (the recursion itself runs unfloored); 0 = the paper's LAE.
+    # A floor under the LAE rate the actors use (VPG's epsilon floor; the recursion itself runs unfloored);
+    # 0 = the paper's LAE.
     # LAE follows the loss down: once the nets predict ~0 everywhere and the greedy pick keeps failing on an
     # empty pixel, the loss and with it the rate go to ~0.01 and nothing new is tried (docs/results-archive.md).
-    lae_min_rate: float = 0.0
+    lae_min_rate: float = 0.1
     top_k: int = 10  # action candidates: the top-k local maxima of each allowed net's Q map
     candidate_min_distance_px: int = 5  # local maxima closer than this are one candidate
     random_angle_prob: float = 0.5  # when exploring, draw the angle uniformly with this probability

@@ -35,19 +35,19 @@ class LearnerConfig:
     # "sum": per-pixel Huber losses summed over the label's support (every labelled pixel weighs what VPG's
     # single labelled pixel weighs); "mean": averaged over the support (the loss no longer grows with the
     # Gaussian's size). The paper does not say; the authors' code sums.
-    loss_reduction: Literal["sum", "mean"] = "sum"
+    loss_reduction: Literal["sum", "mean"] = "mean"
     # Extra weight on the executed pixel's own Huber(Q(s_t, a_t) - Y_t), the paper's L_t, added to the support
     # loss. With "mean" the executed pixel weighs 1/N of an N-pixel support, so a sharp peak of Q, which is
     # where the greedy argmax lands, is trained down only slowly (measured: a failed push's Q fell from 0.7
     # to 0.43-0.63 in 30 updates on those four items alone, docs/results-archive.md); 1 gives it the paper's weight.
     # 0 = the support loss alone.
-    executed_pixel_weight: float = 0.0
+    executed_pixel_weight: float = 1.0
     target_network: bool = False  # bootstrap V(s_{t+1}) from a lagged copy instead of the online net
     # Clip V(s_{t+1}) into the range a return can have, [0, largest reward weight / (1 - gamma)]: rewards are
     # >= 0 and <= that weight, so a V outside it is the nets' error. Off = the paper's target. Seen without it:
     # the place net's largest Q in a batch went from 7.6 to -0.4 in nine updates, and a successful pick's
     # target R + gamma V moves with it, from ~4 to below a failed pick's 0 (docs/results-archive.md).
-    bootstrap_clip: bool = False
+    bootstrap_clip: bool = True
     target_sync_every_updates: int = 100  # copy online -> target every this many updates
     # Take V(s_{t+1}) from the actor's next decision (it runs the same nets on s_{t+1} to act) when its weights
     # are at most this many updates behind the learner's, instead of a forward pass here; older values are
@@ -90,7 +90,9 @@ class LearnerConfig:
     # and writing the default nets with their momentum (46 MB) takes ~0.3 s of it.
     checkpoint_every_updates: int = 100
     keep_checkpoints: int = 3  # older checkpoints are deleted after a new one is complete
-    publish_every_updates: int = 10
+    # New weights after every update: VPG acts on the net it has just trained, and an actor that keeps its
+    # weights for many actions repeats the action that has just failed (docs/results.md).
+    publish_every_updates: int = 1
     # Replay ratio: at most this many updates per newly inserted transition (the learner waits rather than
     # overfitting a small buffer); 0 = no cap.
     max_updates_per_insert: float = 4.0

@@ -55,7 +55,7 @@ class SimConfig:
     # --- robot
     robot: Literal["arm", "gripper"] = "arm"  # "gripper": a floating Panda hand moved by a constraint (faster)
     # The fingers' travel, force and speed (HANDS): "panda" (8 cm opening) or "rg2" (11 cm, the paper's).
-    hand: Literal["panda", "rg2"] = "panda"
+    hand: Literal["panda", "rg2"] = "rg2"
     finger_friction: float = 1.5  # lateral friction of the finger pads (a 5 cm cube must not slip)
     # Unset (None): the hand's own value (HANDS); set, it overrides the hand's.
     finger_force_n: float | None = None  # squeezing force of each finger (N)

@@ -67,7 +67,7 @@ def test_decide_masks_and_its_maps_give_the_masked_value() -> None:
 
 def test_the_learners_bootstrap_takes_the_max_over_the_same_pixels() -> None:
     t = transition(32, seed=3, reward=1.0, depth_after=_one_block())
-    plain = small_trainer(seed=0, actor_value_max_age=0)
+    plain = small_trainer(seed=0, actor_value_max_age=0, bootstrap_clip=False)  # the raw max, unclipped
     masked = Trainer(SMALL_MODEL, plain.cfg, plain.reward_cfg, plain.task_cfg, seed=0, exploration_cfg=CFG)
     v_plain, v_masked = plain.next_state_values([t])[0], masked.next_state_values([t])[0]
     _, raw = decide(plain.model.eval(), t.color_after, t.depth_after, False, 0.0, np.random.default_rng(0),

@@ -63,6 +63,30 @@ def test_configs_default_toml_is_the_defaults():
     assert load_config(ROOT / "configs" / "default.toml") == Config()
 
 
+def test_configs_default_toml_lists_every_field():
+    # Loading fills missing fields, so equality alone would not notice a field left out of the file.
+    import dataclasses
+
+    import tomllib
+
+    def names(obj: object, prefix: str = "") -> set[str]:
+        out = set()
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                out |= names(value, f"{prefix}{f.name}.")
+            elif f.default is not None:  # declared unset (None): named in the file's header instead
+                out.add(f"{prefix}{f.name}")
+        return out
+
+    def keys(table: dict, prefix: str = "") -> set[str]:
+        return set().union(*([keys(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}"}
+                              for k, v in table.items()]))
+
+    listed = keys(tomllib.loads((ROOT / "configs" / "default.toml").read_text()))
+    assert listed == names(Config())
+
+
 def test_local_zenoh_config_opens_a_real_session():
     zenoh = pytest.importorskip("zenoh")
     cfg = zenoh.Config.from_json5((ROOT / "deploy" / "zenoh-local.json5").read_text())

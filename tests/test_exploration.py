@@ -100,7 +100,7 @@ def test_exploration_rate_lae_follows_lae_update():
 
 
 def test_lae_floor_bounds_the_used_rate_but_not_the_recursion():
-    floored, paper = ExplorationRate(replace(CFG, lae_min_rate=0.1)), ExplorationRate(CFG)
+    floored, paper = ExplorationRate(replace(CFG, lae_min_rate=0.1)), ExplorationRate(replace(CFG, lae_min_rate=0.0))
     for _ in range(20):  # tiny losses: the paper's LAE decays toward 0
         assert floored.update(1e-4) == pytest.approx(max(paper.update(1e-4), 0.1))
     assert paper.value < 0.01 and floored.value == 0.1

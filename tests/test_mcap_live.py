@@ -35,6 +35,7 @@ from romannet.common.zenoh_session import free_port, make_config, open_session
 from romannet.mcaptools.play import PlayOptions, play, scan
 from romannet.mcaptools.sinks import FoxgloveSink
 from romannet.mcaptools.steps import parse_transition
+from romannet.replay.recordcheck import CHECK_BYTES, record_problem
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -161,7 +162,10 @@ def test_feed_round_trip_exactly_once_bit_equal_and_idempotent(recordings, tmp_p
         with open(segment, "rb") as f:
             stored += [m.data for _, _, m in make_reader(f).iter_messages()]
     # The log keeps each transition as received, plus the priority it was inserted with (protobuf field 23,
-    # appended: replay/recovery.py priority_suffix), so the recorded bytes are a prefix of every record.
+    # appended: replay/recovery.py priority_suffix) and the record's checksum (replay/recordcheck.py), so the
+    # recorded bytes are a prefix of every record.
+    assert all(record_problem(item_id, r) is None for item_id, r in enumerate(stored))
+    stored = [r[:-CHECK_BYTES] for r in stored]
     assert all(len(r) > 10 and r[-10:-8] == b"\xb9\x01" for r in stored)
     rescored = [r for r in stored if ".rs-" in parse_transition(r).episode_id]
     assert len(rescored) == len(expected)

@@ -16,7 +16,9 @@ pytestmark = pytest.mark.timeout(120)
 
 def _case_env(stem: str) -> SimEnv:
     case = next(p for p in default_cases() if p.stem == stem)
-    sim = SimConfig(case_file=str(case), settle_steps=120, case_jitter_m=0.0, case_jitter_deg=0.0, max_steps=12)
+    # The Panda hand: these cases test pushing apart what its 8 cm opening cannot grasp.
+    sim = SimConfig(hand="panda", case_file=str(case), settle_steps=120, case_jitter_m=0.0, case_jitter_deg=0.0,
+                    max_steps=12)
     return SimEnv(task=TaskConfig(kind="arrangement"), sim=sim)
 
 

@@ -64,7 +64,7 @@ def test_a_9_cm_cube_needs_the_rg2s_opening() -> None:
 
 
 def test_the_hands_values_fill_what_is_unset() -> None:
-    panda, rg2 = SimConfig(), SimConfig(hand="rg2")
+    panda, rg2 = SimConfig(hand="panda"), SimConfig()  # the RG2 is the default hand
     assert (panda.finger_travel_m, panda.finger_force_n, panda.finger_speed_mps) == (0.04, 40.0, 0.1)
     assert (rg2.finger_travel_m, rg2.finger_force_n, rg2.finger_speed_mps) == (
         HANDS["rg2"].travel_m, HANDS["rg2"].force_n, HANDS["rg2"].speed_mps)

@@ -54,7 +54,7 @@ def test_td_error_is_at_the_executed_pixel_against_the_target():
 
 
 def test_bootstrap_only_on_success_and_from_the_allowed_nets():
-    t = H.trainer()
+    t = H.trainer(bootstrap_clip=False)  # the raw max Q of s', as the paper
     ok = H.transition(primitive="pick", reward=0.5, done=False, seed=1)
     fail = H.transition(primitive="pick", success=False, reward=0.0, done=False, seed=2)
     v = t.next_state_values([ok, fail])
@@ -71,7 +71,7 @@ def test_bootstrap_only_on_success_and_from_the_allowed_nets():
 
 
 def test_target_network_is_used_and_synced():
-    t = H.trainer(target_network=True, target_sync_every_updates=2)
+    t = H.trainer(target_network=True, target_sync_every_updates=2, bootstrap_clip=False)
     with torch.no_grad():
         for p in t.target.parameters():
             p.add_(0.05)
@@ -241,7 +241,7 @@ def test_rotation_support_kernel_trains_the_angle_around_the_executed_pixel():
 
     results = {}
     for where in ("pixel", "kernel"):
-        t = H.trainer(rotation_support=where, lr=0.005, loss_reduction="mean")
+        t = H.trainer(rotation_support=where, lr=0.005, loss_reduction="mean", executed_pixel_weight=0.0)
         before = errors(t)
         for _ in range(15):
             t.train_step([item])
@@ -307,7 +307,7 @@ def test_executed_pixel_weight_adds_the_papers_loss_at_the_executed_pixel():
 
     row, col = 9, 17
     fail = H.transition(primitive="push", seed=3, row=row, col=col, success=False, reward=0.0, done=False)
-    base = H.trainer(loss_reduction="mean").train_step([(fail, 1.0, 0)])
+    base = H.trainer(loss_reduction="mean", executed_pixel_weight=0.0).train_step([(fail, 1.0, 0)])
     weighted = H.trainer(loss_reduction="mean", executed_pixel_weight=2.0).train_step([(fail, 1.0, 0)])
     assert weighted.td_errors == base.td_errors  # same init, same forward pass
     td = base.td_errors[0]
