@@ -23,6 +23,12 @@ def inserts_before_first_sample(replay: ReplayConfig) -> float:
     return replay.min_size_to_sample + math.floor(replay.spi_tolerance / spi + 1e-9)
 
 
+def transitions_before_first_update(replay: ReplayConfig, learner: LearnerConfig) -> int:
+    """How many transitions a run must make before the learner's first update: the replay serves no sample
+    below replay.min_size_to_sample, and the learner asks for none below learner.min_replay_size."""
+    return max(replay.min_size_to_sample, learner.min_replay_size)
+
+
 def check_pacing(replay: ReplayConfig, learner: LearnerConfig) -> None:
     """Raise ConfigError for a replay/learner pair that deadlocks or can never sample."""
     require(learner.batch_size <= replay.max_batch_size, "learner.batch_size", learner.batch_size,

@@ -47,6 +47,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from romannet.common.config_pacing import transitions_before_first_update
 from romannet.common.fsutil import write_json_atomic
 
 from .progress import (
@@ -311,6 +312,11 @@ def run(args: argparse.Namespace) -> int:
              replay_ep, learner_ep)
     if ledger.start_total():
         log.info("the run's earlier launches made %d actions; --max-actions counts them", ledger.start_total())
+    first_update = transitions_before_first_update(cfg.replay, cfg.learner)
+    if args.max_actions and args.max_actions < first_update:
+        log.warning("this run will not train: the learner's first update needs %d transitions in replay "
+                    "(replay.min_size_to_sample, learner.min_replay_size) and --max-actions is %d; run longer or "
+                    "lower both with --set", first_update, args.max_actions)
 
     def on_exit(name: str, _code: int) -> None:
         if sup.children[name].spec.stop_rank == ACTOR_RANK:  # bank its counts before a restart resets them
@@ -354,7 +360,8 @@ def run(args: argparse.Namespace) -> int:
         display.clear()
         for h in console:
             h.removeFilter(clear)
-    _summary(run_dir, progress.snapshot(), final, sup, outcome, time.monotonic() - started, ledger.start_total())
+    _summary(run_dir, progress.snapshot(), final, sup, outcome, time.monotonic() - started, ledger.start_total(),
+             first_update)
     unclean = sup.unclean()
     if unclean:
         log.warning("not every child stopped cleanly: %s (see %s)",
@@ -415,14 +422,15 @@ def _final_stats(client: Any, sup: Supervisor) -> dict[str, Any] | None:
 
 
 def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, sup: Supervisor, outcome: str,
-             elapsed_s: float, earlier_actions: int = 0) -> dict[str, Any]:
-    """Log the run's totals (all launches; actions also this launch's) and write them to summary.json."""
+             elapsed_s: float, earlier_actions: int = 0, first_update: int = 0) -> dict[str, Any]:
+    """Log the run's totals (all launches; actions also this launch's) and write them to summary.json.
+    first_update: transitions the learner needs before its first update (named when it made none)."""
     summary = {
         "run_dir": str(run_dir), "outcome": outcome, "elapsed_s": round(elapsed_s, 1),
         "actions": snap.actions, "actions_this_launch": snap.actions - earlier_actions, "episodes": snap.episodes,
         "completed_episodes": snap.completed_episodes,
         "pick_success": snap.successful_picks / snap.picks if snap.picks else None,
-        "efficiency": snap.efficiency, "learner_updates": snap.updates,
+        "efficiency": snap.efficiency, "learner_updates": snap.updates, "trained": bool(snap.updates),
         "learner_explore_rate": snap.learner_explore_rate, "acked": snap.acked, "spooled": snap.spooled,
         "replay_size": replay.get("size") if replay else snap.replay_size,
         "replay_inserts": replay.get("inserts") if replay else snap.replay_inserts,
@@ -443,4 +451,8 @@ def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, 
              run_dir.name, outcome.replace("_", " "), elapsed_s, snap.actions, summary["actions_this_launch"],
              snap.episodes, snap.completed_episodes, pick, snap.updates if snap.updates is not None else 0,
              summary["replay_size"], snap.acked, snap.spooled, sup.crashes, run_dir / "summary.json")
+    if not snap.updates:
+        log.warning("run %s did not train: the learner made no update (its first needs %d transitions in replay, "
+                    "replay.min_size_to_sample and learner.min_replay_size; the replay holds %s): its checkpoints "
+                    "and curves are the untrained net's", run_dir.name, first_update, summary["replay_size"])
     return summary

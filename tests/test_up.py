@@ -48,9 +48,10 @@ class Up:
         self._out = self.out_path.open("ab")
         fleet = [] if max_actions is None else ["--actors", "2", "--max-actions", str(max_actions)]
         args = ["up", "--runs-dir", str(tmp / "runs"), "--name", name, *fleet, "--robot", "gripper",
-                "--resolution", "0.007", "--progress-every", "5", *extra]
+                "--resolution", "0.007", "--progress-every", "5"]
         for s in SETS:
             args += ["--set", s]
+        args += extra  # after SETS, so a test's --set wins
         self.proc = subprocess.Popen([sys.executable, "-m", "romannet.cli", *args], stdout=self._out,
                                      stderr=subprocess.STDOUT)
 
@@ -157,6 +158,7 @@ def _check_run(up: Up, expected_actions: int, learning: bool = True) -> dict[str
     run_dir = up.run_dir
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["outcome"] == "max_actions_reached", summary
+    assert summary["trained"] is True, summary
     assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
     statuses = _statuses(run_dir)
     assert sorted(statuses) == ["actor-0", "actor-1"]
@@ -208,6 +210,17 @@ def test_up_runs_the_fleet_to_max_actions(tmp_path: Path, ups: list[Up]) -> None
     summary = _check_run(up, 40)
     assert summary["restarts"] == 0, summary
     assert "max actions reached" in up.output()
+
+
+def test_a_run_too_short_to_train_says_so_first_and_in_its_summary(tmp_path: Path, ups: list[Up]) -> None:
+    up = Up(tmp_path, "short", 4, "--set", "learner.min_replay_size=8")
+    ups.append(up)
+    assert up.wait() == 0, up.output()
+    out = up.output()
+    assert "this run will not train: the learner's first update needs 8 transitions" in out, out
+    assert "run short did not train: the learner made no update" in out, out
+    summary = json.loads((up.run_dir / "summary.json").read_text())
+    assert summary["trained"] is False and not summary["learner_updates"], summary
 
 
 def test_replay_outages_mid_run_lose_and_duplicate_nothing(tmp_path: Path, ups: list[Up]) -> None:
