@@ -12,8 +12,10 @@ $(PY):
 	$(PIP) install --quiet --upgrade pip
 
 # torch goes first and pinned: the CPU build lies on disk; an unpinned torch pulls a multi-GB CUDA build.
+# Where pip would still pick a CUDA build: make run TORCH_PIP_ARGS="--index-url https://download.pytorch.org/whl/cpu"
+TORCH_PIP_ARGS ?=
 $(STAMP): $(PY) pyproject.toml
-	$(PIP) install --quiet torch==2.13.0
+	$(PIP) install --quiet torch==2.13.0 $(TORCH_PIP_ARGS)
 	$(PIP) install --quiet -e '.[dev]'
 	touch $(STAMP)
 
