@@ -21,10 +21,8 @@ import argparse
 import dataclasses
 import logging
 import threading
-from collections.abc import Callable
 from pathlib import Path
 
-from romannet.common.action import Action
 from romannet.common.config import Config, load_config
 from romannet.common.config_actor import ActorConfig
 from romannet.common.configbase import write_toml
@@ -48,20 +46,6 @@ def resolve_actor_config(cfg: Config, args: argparse.Namespace) -> ActorConfig:
     changes = {name: value for name, value in (("actor_id", args.actor_id), ("max_actions", args.max_actions),
                                                ("episodes", args.episodes)) if value is not None}
     return dataclasses.replace(actor_section(cfg), **changes)  # validated again by __post_init__
-
-
-def demonstrator_for(env: Env, acfg: ActorConfig) -> Callable[[], Action] | None:
-    """The scripted oracle acting in `env` for actor.demo_actions (None when there are none)."""
-    if acfg.demo_actions == 0:
-        return None
-    from .sim.env import SimEnv
-
-    if not isinstance(env, SimEnv):
-        raise ConfigError("actor.demo_actions", acfg.demo_actions,
-                          "demonstrations come from the simulator's scripted oracle: 0 on a real robot")
-    from .sim.oracle import oracle_action
-
-    return lambda: dataclasses.replace(oracle_action(env), explored=True)
 
 
 def build_env(cfg: Config, robot: str = "sim", camera: str | None = None) -> Env:
@@ -107,7 +91,6 @@ def run(args: argparse.Namespace) -> int:
         engine = InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
         env = build_env(cfg, getattr(args, "robot", "sim"), getattr(args, "camera", None))
         try:
-            demonstrator = demonstrator_for(env, acfg)
             with open_session(zenoh_config) as session:
                 token = session.liveliness().declare_token(RunKeys(cfg.run_id).actor_alive(acfg.actor_id))
                 try:
@@ -116,8 +99,7 @@ def run(args: argparse.Namespace) -> int:
                     with ZenohWeightsSource(session, cfg.run_id, fetch_timeout_s=acfg.weights_fetch_timeout_s,
                                             validate=lambda t: validate_tensors(engine.model, t)) as source:
                         log.info("actor %s ready (run %s, dir %s)", acfg.actor_id, cfg.run_id, run_dir)
-                        run_actor(cfg, run_dir, env, client, source, stop, actor_cfg=acfg, engine=engine,
-                                  demonstrator=demonstrator)
+                        run_actor(cfg, run_dir, env, client, source, stop, actor_cfg=acfg, engine=engine)
                 finally:
                     token.undeclare()
         finally:

@@ -27,7 +27,6 @@ import re
 import threading
 import time
 import zlib
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -173,9 +172,8 @@ class ActorLoop:
 
     def __init__(self, cfg: Config, run_dir: str | Path, env: Env, replay_client: ReplayClient,
                  weights_source: WeightsSource, stop_event: threading.Event, acfg: ActorConfig,
-                 engine: InferenceEngine | None = None, demonstrator: Callable[[], Action] | None = None):
+                 engine: InferenceEngine | None = None):
         self.cfg, self.acfg, self.env, self.weights, self.stop = cfg, acfg, env, weights_source, stop_event
-        self.demonstrator = demonstrator  # the scripted oracle for the first actor.demo_actions actions
         self.run_dir = Path(run_dir)
         self.paths = ActorPaths.of(run_dir, acfg)
         self.paths.root.mkdir(parents=True, exist_ok=True)
@@ -353,7 +351,7 @@ class ActorLoop:
                     break
                 if decision is None:
                     self.swap_policy()
-                    decision = self.decision(obs, rng, self.stats.actions)
+                    decision = self.decision(obs, rng)
                 primitive, result, decision = self.act(obs, decision, episode_id, step, rng, recorder)
                 ep_actions += 1
                 ep_picks += int(primitive == "pick" and result.success)
@@ -401,12 +399,9 @@ class ActorLoop:
         self.good_weights = self.loaded_weights
         return result
 
-    def decision(self, obs: Observation, rng: np.random.Generator, index: int) -> Decision:
-        """The action for `obs`, this actor's action number `index`, with the weights and rate in force now;
-        a demonstration's action is the oracle's (its Q maps, the policy's, still give V for the bootstrap)."""
+    def decision(self, obs: Observation, rng: np.random.Generator) -> Decision:
+        """The next action for `obs` with the weights and rate in force now."""
         action, maps = self.decide(obs, rng)
-        if self.demonstrator is not None and index < self.acfg.demo_actions:
-            action = self.demonstrator()
         return Decision(action, maps, self.stats.weights_version, self.stats.explore_rate)
 
     def act(self, obs: Observation, decision: Decision, episode_id: str, step: int, rng: np.random.Generator,
@@ -423,7 +418,7 @@ class ActorLoop:
         following = None
         if not result.done and not self.stop.is_set() and not self._last_action():
             self.swap_policy()
-            following = self.decision(result.observation, rng, self.stats.actions + 1)
+            following = self.decision(result.observation, rng)
         sim_seed = result.info.get("seed")
         msg = TransitionMsg(
             actor_id=self.acfg.actor_id, episode_id=episode_id, step=step, start_ns=start_ns, end_ns=end_ns,
@@ -462,14 +457,12 @@ class ActorLoop:
 
 def run_actor(cfg: Config, run_dir: str | Path, env: Env, replay_client: ReplayClient,
               weights_source: WeightsSource, stop_event: threading.Event, actor_cfg: ActorConfig | None = None,
-              engine: InferenceEngine | None = None,
-              demonstrator: Callable[[], Action] | None = None) -> ActorStats:
+              engine: InferenceEngine | None = None) -> ActorStats:
     """Run the actor loop until stop_event is set or actor.max_actions / actor.episodes is reached.
 
     actor_cfg defaults to cfg.actor; engine (for tests) defaults to one built from cfg.model. The caller
     owns env, replay_client and weights_source (and closes them); the spool, sender and engine are closed here.
-    demonstrator: the action for the current state during actor.demo_actions (main.demonstrator_for).
     """
     loop = ActorLoop(cfg, run_dir, env, replay_client, weights_source, stop_event,
-                     actor_cfg or actor_section(cfg), engine, demonstrator)
+                     actor_cfg or actor_section(cfg), engine)
     return loop.run()

@@ -30,9 +30,6 @@ class ActorConfig:
     # Limits of one run of the process; 0 = no limit (run until SIGTERM/SIGINT).
     episodes: int = 0
     max_actions: int = 0
-    # The first N actions of each actor process are the scripted oracle's instead of the policy's:
-    # planner demonstrations in replay before the policy acts (SDQfD), counted in max_actions. Simulation only.
-    demo_actions: int = 0
     # Spool: every transition is written (fsync'ed) here before it is sent, and removed once acknowledged.
     spool_dir: str = ""  # "" = <run-dir>/actors/<actor_id>/spool
     spool_max_items: int = 2000  # the actor pauses (stops acting) while the spool holds this many ...
@@ -64,8 +61,6 @@ class ActorConfig:
                 "digit (it becomes a Zenoh key chunk and a file name)")
         require(self.episodes >= 0, "actor.episodes", self.episodes, "must be >= 0 (0 = no limit)")
         require(self.max_actions >= 0, "actor.max_actions", self.max_actions, "must be >= 0 (0 = no limit)")
-        require(self.demo_actions >= 0, "actor.demo_actions", self.demo_actions,
-                "must be >= 0 (0 = the policy from the first action)")
         require(1 <= self.spool_max_items <= 10_000_000, "actor.spool_max_items", self.spool_max_items,
                 "must be 1..10000000 transitions")
         require(_MIB <= self.spool_max_bytes, "actor.spool_max_bytes", self.spool_max_bytes,
