@@ -174,6 +174,15 @@ def _decode_png(data: bytes, bit_depth: int, color_type: int, what: str) -> np.n
     return image
 
 
+def check_png_pixels(data: bytes, bit_depth: int, color_type: int, what: str) -> None:
+    """Decode a PNG fully, as the learner will, and check the pixels against its header; DecodeError if not.
+
+    For a check without the result (the replay server's insert): the same decoder the learner runs, so a
+    PNG that passes here decodes there, but without the colour conversion or the depth scaling.
+    """
+    _decode_png(data, bit_depth, color_type, what)
+
+
 def decode_color_png(data: bytes) -> np.ndarray:
     """RGB uint8 array (h, w, 3) of an 8-bit RGB PNG; raises DecodeError on anything else."""
     bgr = _decode_png(data, 8, _COLOR_TYPE_RGB, "color")

@@ -46,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
     zenoh_config = make_config(args.zenoh_config, listen=args.listen or None, connect=args.connect or None)
     ws = config.workspace
     limits = ServerLimits(max_insert_bytes=replay_cfg.max_item_bytes,
-                          expected_shape=(ws.height_px, ws.width_px))
+                          expected_shape=(ws.height_px, ws.width_px),
+                          decode_pixels=not args.skip_pixel_decode)
     stop = threading.Event()
 
     with stop_on_signals(stop, "shutting down"):

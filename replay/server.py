@@ -3,7 +3,8 @@
 Threads: Zenoh calls our callbacks on its own threads, and a callback that blocks (an fsync, a sample
 waiting for the rate limiter) stalls every other message of the session. So callbacks only copy the
 payload and enqueue; three small worker pools do the work:
-- insert workers: decode + validate the transition, `store.insert` (durable), reply with the ack;
+- insert workers: validate the transition (its PNGs decoded in full), `store.insert` (durable), reply
+  with the ack;
 - sample workers: `store.sample_encoded` (may wait for the rate limiter), reply with the batch. A pool
   of their own, because a sample waiting for inserts must never occupy the thread an insert needs
   (deadlock);
@@ -70,7 +71,9 @@ class ServerLimits:
     default_wait_s: float = 5.0
     max_wait_s: float = 60.0
     expected_shape: tuple[int, int] | None = None
-    verify_pixels: bool = False  # True: also inflate every PNG (~10 ms per 224x224 insert; see validate.py)
+    # Decode every PNG in full at insert (replay/validate.py); False checks headers and CRCs only
+    # (`romannet replay --skip-pixel-decode`, for the benchmark's comparison).
+    decode_pixels: bool = True
 
 
 def _payload(obj: Any) -> bytes:
@@ -231,10 +234,8 @@ class ReplayServer:
                          f"{self.limits.max_insert_bytes}")
             return
         try:
-            if self.limits.verify_pixels:
-                msg = wire.decode_transition(data, self.limits.expected_shape)
-            else:
-                msg = check_transition(data, self.limits.expected_shape, self.limits.max_insert_bytes)
+            msg = check_transition(data, self.limits.expected_shape, self.limits.max_insert_bytes,
+                                   self.limits.decode_pixels)
         except DecodeError as err:
             self._reject(query, classify_decode_error(str(err)), str(err))
             return

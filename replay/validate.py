@@ -1,15 +1,16 @@
-"""Validate an incoming transition without decompressing its heightmaps (the replay server's fast path).
+"""Validate an incoming transition at the replay server's insert, without keeping its heightmaps.
 
-Why: wire.decode_transition inflates all four PNGs, ~2 ms each for a 224x224 heightmap (measured: 8-11 ms
-per transition on the 2-core box), which caps a server at ~100-200 inserts/s, below the 500/s target.
-The server stores the encoded bytes as they came and never needs the pixels, so it checks everything
-except the pixel payload:
+The server stores the encoded bytes as they came and never needs the pixels, so nothing decoded is kept:
 - protobuf framing, schema version, required fields, enum values, every scalar's range and finiteness
   (by building a TransitionMsg, whose constructor runs the same checks as the full decoder);
 - each PNG's header (size, bit depth, colour type; all four equal; the expected heightmap shape) and its
-  chunk structure with every chunk's CRC-32, so transport or disk corruption is caught here (~0.4 ms).
-Not checked: that the zlib stream inside valid-CRC IDAT chunks inflates, which only a deliberately crafted
-message gets wrong; the learner's full decode (decode_sample_batch) still refuses such an item.
+  chunk structure with every chunk's CRC-32, so transport or disk corruption is caught cheaply (~0.4 ms);
+- with decode_pixels (the server's default), each PNG decoded in full by the learner's own decoder, its
+  pixels' shape and dtype checked against the header. Why: a crafted PNG (valid CRCs around a zlib stream
+  that does not inflate, or an IHDR claiming more pixels than the data holds) passes the checks above;
+  stored, it is sampled again and again and refused by the learner each time. Refused here, the actor
+  hears "bad_image" and sets it aside. Its cost per insert is in docs/benchmarks.md (`romannet bench
+  replay`, the `without_pixel_decode` row).
 The returned TransitionMsg holds zero-stride placeholder heightmaps: use it for its fields only, and the
 encoded bytes for the pixels (ReplayStore.insert(msg, encoded=data) does exactly that).
 """
@@ -23,7 +24,7 @@ import numpy as np
 from romannet.common import romannet_pb2 as pb
 from romannet.common import wire
 from romannet.common.errors import DecodeError
-from romannet.common.imagecodec import check_png_chunks, read_png_header
+from romannet.common.imagecodec import check_png_chunks, check_png_pixels, read_png_header
 
 # (field, bit depth, PNG colour type): color is 8-bit RGB (type 2), depth 16-bit grayscale (type 0).
 _PNG_FORMATS = (("color_before_png", 8, 2), ("depth_before_png", 16, 0),
@@ -42,11 +43,12 @@ def _placeholders(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def check_transition(data: bytes, expected_shape: tuple[int, int] | None = None,
-                     max_bytes: int = 64 * 1024 * 1024) -> wire.TransitionMsg:
-    """The transition's fields from encoded bytes, validated without inflating the PNGs.
+                     max_bytes: int = 64 * 1024 * 1024, decode_pixels: bool = True) -> wire.TransitionMsg:
+    """The transition's fields from encoded bytes, validated; the decoded pixels are not kept.
 
-    expected_shape: (h, w) in pixels every heightmap must have, or None. Raises DecodeError (with the
-    same messages as wire.decode_transition) when anything is wrong.
+    expected_shape: (h, w) in pixels every heightmap must have, or None. decode_pixels: decode every PNG
+    in full (False: headers and chunk CRCs only). Raises DecodeError (with the same messages as
+    wire.decode_transition for what both check) when anything is wrong.
     """
     try:
         if len(data) > max_bytes:
@@ -71,7 +73,10 @@ def check_transition(data: bytes, expected_shape: tuple[int, int] | None = None,
             if got != (bit_depth, color_type):
                 raise ValueError(f"{name}: bit depth {got[0]} and colour type {got[1]}; expected bit depth "
                                  f"{bit_depth} and colour type {color_type}")
-            check_png_chunks(png)
+            if decode_pixels:
+                check_png_pixels(png, bit_depth, color_type, name)  # walks the chunks first
+            else:
+                check_png_chunks(png)
         h, w = read_png_header(pngs["color_before_png"])[:2]
         color, depth = _placeholders(h, w)
         return wire.transition_msg(t, primitive, color, depth, color, depth)

@@ -246,9 +246,10 @@ BENCHMARKS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
     "inference": ("the actor's decision latency against baselines",
                   "The actor's decision latency (forward passes of the three nets and the choice of action) "
                   "against the naive eager fp32 baselines.", "romannet bench inference --json", ("seed", "repeats")),
-    "replay": ("durable inserts/s, sample latency, recovery time",
-               "The replay server over loopback Zenoh: durable inserts per second, sample latency, and the time "
-               "to recover --inserts transitions from its log.",
+    "replay": ("durable inserts/s, sample latency, recovery time, cost of the pixel check",
+               "The replay server over loopback Zenoh: durable inserts per second, sample latency, the time "
+               "to recover --inserts transitions from its log, and what decoding every PNG at insert costs "
+               "(the same inserts into a server started with --skip-pixel-decode).",
                "romannet bench replay --json --inserts 2000 --repeats 200", ("seed", "repeats", "inserts")),
     "sim": ("simulator actions/s per task, ms per render, heightmap and primitive",
             "The simulator: actions per second per task, and milliseconds per render, heightmap and primitive, "
@@ -363,6 +364,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--accept-loss", action="store_true",
                    help="start even if recovery finds acknowledged items it cannot get back (they are recorded "
                    "in DIR/losses.json); without it the server refuses to start and names them")
+    p.add_argument("--skip-pixel-decode", action="store_true",
+                   help="check each PNG's header and chunk CRCs at insert but do not decode its pixels (faster "
+                   "inserts; a crafted PNG is then stored and refused by the learner instead); for `romannet "
+                   "bench replay`'s comparison")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",

@@ -1,8 +1,11 @@
-"""Valid sample messages for the wire tests (test_wire.py, test_wire_fuzz.py); small heightmaps."""
+"""Valid sample messages for the wire tests (test_wire.py, test_wire_fuzz.py); small heightmaps; and
+crafted PNGs that pass every header and CRC check but do not decode."""
 
 from __future__ import annotations
 
 import dataclasses
+import struct
+import zlib
 from collections.abc import Callable
 from typing import Any
 
@@ -98,3 +101,45 @@ def pb_transition(**overrides: Any) -> pb.Transition:
     out = pb.Transition()
     out.ParseFromString(wire.encode_transition(transition(**overrides)))
     return out
+
+
+def png_chunks(png: bytes) -> list[tuple[bytes, bytes]]:
+    """[(type, data)] of a well-formed PNG."""
+    out, pos = [], 8
+    while pos < len(png):
+        length, kind = struct.unpack_from(">I4s", png, pos)
+        out.append((kind, png[pos + 8:pos + 8 + length]))
+        pos += 12 + length
+    return out
+
+
+def png_from_chunks(chunks: list[tuple[bytes, bytes]]) -> bytes:
+    """A PNG of these chunks, each with a valid CRC: what a crafted file would carry."""
+    return b"\x89PNG\r\n\x1a\n" + b"".join(struct.pack(">I", len(data)) + kind + data
+                                           + struct.pack(">I", zlib.crc32(kind + data)) for kind, data in chunks)
+
+
+def _with_idat(png: bytes, idat: bytes) -> bytes:
+    chunks = png_chunks(png)
+    return png_from_chunks([chunks[0], (b"IDAT", idat), (b"IEND", b"")])
+
+
+def png_with_bad_zlib(png: bytes) -> bytes:
+    """The PNG with its image data replaced by a zlib header and a deflate block of the reserved type 3:
+    the stream cannot inflate, yet every chunk's CRC is valid."""
+    return _with_idat(png, b"\x78\x01\x07" + b"\x00" * 16)
+
+
+def png_missing_rows(png: bytes) -> bytes:
+    """The PNG whose IHDR still claims all rows but whose (valid) zlib stream holds only the first half."""
+    chunks = png_chunks(png)
+    raw = zlib.decompress(b"".join(data for kind, data in chunks if kind == b"IDAT"))
+    height = struct.unpack(">I", chunks[0][1][4:8])[0]
+    row = len(raw) // height  # filter byte + pixels
+    return _with_idat(png, zlib.compress(raw[:row * (height // 2)]))
+
+
+CRAFTED_PNGS: dict[str, Callable[[bytes], bytes]] = {
+    "zlib stream that does not inflate": png_with_bad_zlib,
+    "IHDR claims rows the data lacks": png_missing_rows,
+}

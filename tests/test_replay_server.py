@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _wire_samples import assert_transitions_equal, transition
+from _wire_samples import CRAFTED_PNGS, assert_transitions_equal, transition
 
+from romannet.common import romannet_pb2 as pb
 from romannet.common import wire
 from romannet.common.replay_client import RateLimitedError, ZenohReplayClient
 from romannet.common.wire_messages import PriorityUpdateMsg
@@ -188,6 +189,26 @@ def test_idempotent_insert_fuzz_and_sigterm(server: Server, client: ZenohReplayC
 
     assert server.stop(signal.SIGTERM) == 0, server.output()
     assert list(server.dir.glob("snapshot-*")), "no snapshot written at shutdown"
+
+
+def test_crafted_png_behind_valid_crcs_is_refused_and_not_stored(server: Server,
+                                                                 client: ZenohReplayClient) -> None:
+    sent = 0
+    for craft, make in sorted(CRAFTED_PNGS.items()):
+        for field in ("color_before_png", "depth_after_png"):
+            m = pb.Transition.FromString(wire.encode_transition(_item(sent)))
+            setattr(m, field, make(getattr(m, field)))
+            with pytest.raises(RemoteError) as err:
+                client.insert_encoded(m.SerializeToString(), timeout_s=10)
+            assert err.value.reason == "bad_image", (craft, err.value)
+            assert f"{field} PNG is corrupt" in err.value.detail, (craft, err.value.detail)
+            sent += 1
+    stats = client.stats()
+    assert stats["size"] == 0
+    assert stats["server"]["rejected"]["insert"] == {"bad_image": sent}
+    assert client.insert(_item(100)).status == "accepted"  # still serving
+    assert client.stats()["size"] == 1
+    assert server.stop(signal.SIGTERM) == 0, server.output()
 
 
 def _wait_for(get, ok, timeout_s: float = 10.0):
