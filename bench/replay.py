@@ -14,7 +14,10 @@ and ratios from this one run; the 2-core box drifts):
 - recovery time per 10,000 transitions: opening the store from a log with no snapshot (the kill -9 worst
   case) in this process, after the server was killed;
 - the server's CPU time per batch-1 sample request as a share of one learner step, where a learner step
-  is forward + backward of one RoManNet net (GRConvNet) at batch 1, 224x224, measured here once.
+  is forward + backward of one RoManNet net (GRConvNet) at batch 1, 224x224, measured here once;
+- the cost of decoding every PNG at insert (replay/validate.py): the same inserts into a second fresh
+  server started with --skip-pixel-decode (`without_pixel_decode`, run first), and the ratio of the two
+  throughputs; plus the insert check alone in this process, one thread, with and without the decode.
 Targets (issue 4): >= 500 inserts/s, p99 <= 20 ms, <= 5 s per 10k, < 10 %.
 """
 
@@ -63,10 +66,10 @@ def _box_busy_s() -> float | None:
         return None
 
 
-def _start_server(directory: Path, config_path: Path, port: int) -> subprocess.Popen:
+def _start_server(directory: Path, config_path: Path, port: int, decode_pixels: bool = True) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "romannet.cli", "--log-level", "WARNING", "replay", "--config",
            str(config_path), "--dir", str(directory), "--listen", f"tcp/127.0.0.1:{port}"]
-    return subprocess.Popen(cmd, stdin=subprocess.DEVNULL)
+    return subprocess.Popen(cmd + ([] if decode_pixels else ["--skip-pixel-decode"]), stdin=subprocess.DEVNULL)
 
 
 def _percentiles_ms(samples_s: list[float]) -> dict[str, float]:
@@ -173,8 +176,10 @@ def run_replay_benchmark(inserts: int = 2000, repeats: int = 200, seed: int = 0,
         build_s = time.perf_counter() - t0
         with tempfile.TemporaryDirectory(prefix=f"romannet-bench-replay-{name}-") as tmp:
             work = Path(directory) / name if directory is not None else Path(tmp)
+            without = _insert_only(work / "without-pixel-decode", payloads, clients)
             out = _measure_workload(work, payloads, repeats, clients, step_s)
-        out = {"scenes": len(scenes), "build_s": round(build_s, 2), **out}
+        out = {"scenes": len(scenes), "build_s": round(build_s, 2), **out, "without_pixel_decode": without,
+               "pixel_decode": _pixel_decode_cost(out, without, payloads)}
         out["meets_targets"] = _meets_targets(out)
         result["workloads"][name] = out
         log.info("bench replay %s: %s", name, out)
@@ -183,17 +188,58 @@ def run_replay_benchmark(inserts: int = 2000, repeats: int = 200, seed: int = 0,
     return result
 
 
-def _measure_workload(work: Path, payloads: list[bytes], repeats: int, clients: int,
-                      step_s: float | None) -> dict:
-    """A fresh server in work/replay: inserts, samples (batch 1 and 8), kill -9, disk bytes, recovery."""
-    store_dir = work / "replay"
+def _write_config(work: Path) -> Path:
     config_path = work / "bench.toml"
     work.mkdir(parents=True, exist_ok=True)
     # No time- or count-based snapshots: the recovery measurement then replays the whole log.
     config_path.write_text(f'run_id = "{_RUN_ID}"\n[replay]\nmin_size_to_sample = 8\n'
                            "snapshot_every_s = 0.0\nsnapshot_every_inserts = 0\n")
+    return config_path
+
+
+def _insert_only(work: Path, payloads: list[bytes], clients: int) -> dict:
+    """The insert phase alone, into a fresh server that checks PNG headers and CRCs but decodes no pixels."""
     port = free_port()
-    proc = _start_server(store_dir, config_path, port)
+    proc = _start_server(work / "replay", _write_config(work), port, decode_pixels=False)
+    try:
+        with open_session(make_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as session:
+            client = ZenohReplayClient(session, _RUN_ID)
+            if not client.wait_until_ready(60):
+                raise TimeoutError("the replay server did not come up within 60 s")
+            return _insert_phase(client, payloads, clients, proc.pid)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+
+
+def check_ms(payloads: list[bytes], decode_pixels: bool, count: int = 200) -> float:
+    """Median ms of the server's insert check (replay/validate.py) on up to `count` payloads, one thread."""
+    from romannet.replay.validate import check_transition
+
+    times = []
+    for data in payloads[:count]:
+        t0 = time.perf_counter()
+        check_transition(data, decode_pixels=decode_pixels)
+        times.append(time.perf_counter() - t0)
+    return round(statistics.median(times) * 1000, 3)
+
+
+def _pixel_decode_cost(with_decode: dict, without: dict, payloads: list[bytes]) -> dict:
+    """What decoding every PNG at insert costs: throughput ratio (with / without) and ms per insert."""
+    out = {"inserts_per_s_ratio": round(with_decode["inserts_per_s"] / without["inserts_per_s"], 3),
+           "check_ms": check_ms(payloads, True), "check_ms_without": check_ms(payloads, False)}
+    if "server_cpu_ms_per_insert" in with_decode and "server_cpu_ms_per_insert" in without:
+        out["server_cpu_ms_per_insert_added"] = round(with_decode["server_cpu_ms_per_insert"]
+                                                      - without["server_cpu_ms_per_insert"], 3)
+    return out
+
+
+def _measure_workload(work: Path, payloads: list[bytes], repeats: int, clients: int,
+                      step_s: float | None) -> dict:
+    """A fresh server in work/replay: inserts, samples (batch 1 and 8), kill -9, disk bytes, recovery."""
+    store_dir = work / "replay"
+    port = free_port()
+    proc = _start_server(store_dir, _write_config(work), port)
     out: dict = {}
     try:
         with open_session(make_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as session:
