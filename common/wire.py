@@ -217,7 +217,7 @@ def _transition_from_pb(t: pb.Transition, expected_shape: tuple[int, int] | None
 def transition_msg(t: pb.Transition, primitive: str, color_before: np.ndarray, depth_before: np.ndarray,
                    color_after: np.ndarray, depth_after: np.ndarray) -> TransitionMsg:
     """The one mapping from a checked protobuf Transition to the dataclass (the heightmaps decoded by the
-    caller: the replay server's validation passes placeholders, it never decodes pixels)."""
+    caller: the replay server's validation passes placeholders, it keeps no decoded pixels)."""
     a = t.action
     has_next = t.HasField("next_value") and t.HasField("next_value_version")
     return TransitionMsg(
