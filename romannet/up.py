@@ -50,15 +50,8 @@ from typing import TYPE_CHECKING, Any
 from romannet.common.config_pacing import transitions_before_first_update
 from romannet.common.fsutil import write_json_atomic
 
-from .progress import (
-    ActorLedger,
-    ClearLineFilter,
-    FleetProgress,
-    FleetSnapshot,
-    Progress,
-    fleet_fields,
-    read_actor_statuses,
-)
+from .fleet import ActorLedger, FleetProgress, FleetSnapshot, fleet_fields, read_actor_statuses
+from .progress import ClearLineFilter, Progress
 from .rundir import prepare_run
 from .supervisor import ChildSpec, RestartPolicy, Supervisor
 

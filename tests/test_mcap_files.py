@@ -288,7 +288,7 @@ def test_playback_delays_follow_recorded_time() -> None:
 def test_up_passes_recordings_to_the_learner(tmp_path: Path) -> None:
     import argparse
 
-    from romannet.progress import ActorLedger
+    from romannet.fleet import ActorLedger
     from romannet.rundir import prepare_run
     from romannet.up import build_specs
 

@@ -361,7 +361,7 @@ def test_learner_cli_checks_init_from_before_connecting(run, tmp_path, capsys):
 
 
 def test_up_checks_init_from_first_and_passes_it_to_a_learner_without_checkpoint(run, tmp_path):
-    from romannet.progress import ActorLedger
+    from romannet.fleet import ActorLedger
     from romannet.up import build_specs, check_init_from
 
     sets = [a for s in SETS for a in ("--set", s)]

@@ -19,14 +19,13 @@ from pathlib import Path
 
 import pytest
 
+from romannet.fleet import FleetSnapshot, fleet_fields
 from romannet.progress import (
-    FleetSnapshot,
     Progress,
     RateWindow,
     Reading,
     eta_s,
     fit_fields,
-    fleet_fields,
     format_duration,
     format_rate,
     plain_line,

@@ -16,15 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from romannet.progress import (
-    ActorLedger,
-    FleetSnapshot,
-    MovingRate,
-    Reading,
-    fleet_fields,
-    plain_line,
-    read_last_metrics,
-)
+from romannet.fleet import ActorLedger, FleetSnapshot, MovingRate, fleet_fields, read_last_metrics
+from romannet.progress import Reading, plain_line
 from romannet.supervisor import ChildSpec, RestartPolicy, Supervisor
 from romannet.up import actor_shares, split_actions
 

@@ -13,7 +13,7 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
-from romannet.progress import ActorLedger, read_actor_statuses
+from romannet.fleet import ActorLedger, read_actor_statuses
 from romannet.up import LEDGER_FILE
 
 log = logging.getLogger("romannet.sweep")
