@@ -1,19 +1,20 @@
 """`romannet <verb>`: the single command-line entry point of the fleet.
 
-Each verb's module is imported only when that verb runs, so `romannet --help` stays fast.
+Each verb's module is imported only when that verb runs, so `romannet --help` stays fast. The benchmarks'
+sub-commands are romannet/cli_bench.py's, the "did you mean" error handling romannet/cli_parser.py's.
 """
 
 from __future__ import annotations
 
 import argparse
-import difflib
 import json
 import logging
-import re
 import sys
 from collections.abc import Callable
 
 from romannet import __version__
+from romannet.cli_bench import add_bench_arguments, cmd_bench
+from romannet.cli_parser import Parser, parse_args
 from romannet.common.errors import RomannetError
 from romannet.common.logsetup import setup_logging
 from romannet.deploy import (
@@ -89,53 +90,6 @@ def cmd_info(args: argparse.Namespace) -> int:
     info = collect_info(_load(args))
     sys.stdout.write((json.dumps(info, indent=2) if args.json else format_info(info)) + "\n")
     return 0
-
-
-def _repeats(args: argparse.Namespace) -> dict:
-    """Each benchmark has its own default repeat count; pass --repeats only when the user gave it."""
-    return {} if args.repeats is None else {"repeats": args.repeats}
-
-
-def cmd_bench(args: argparse.Namespace) -> int:
-    if args.what == "inference":
-        from romannet.bench.inference import run_inference_benchmark
-
-        result = run_inference_benchmark(seed=args.seed, **_repeats(args))
-    elif args.what == "replay":
-        from romannet.bench.replay import run_replay_benchmark
-
-        result = run_replay_benchmark(inserts=args.inserts, seed=args.seed, **_repeats(args))
-    elif args.what == "sim":
-        from romannet.bench.sim import run_sim_benchmark
-
-        robots = tuple(r.strip() for r in args.robots.split(",") if r.strip())
-        result = run_sim_benchmark(actions=args.actions, seed=args.seed, robots=robots)
-    elif args.what == "learner":
-        from romannet.bench.learner import run_learner_benchmark
-
-        sizes = tuple(int(b) for b in args.batch_sizes.split(",") if b.strip())
-        result = run_learner_benchmark(batch_sizes=sizes, seed=args.seed, device=args.device, **_repeats(args))
-    elif args.what == "system":
-        from romannet.bench.system import run_system_benchmark
-
-        result = run_system_benchmark(actions_per_actor=args.actions, seed=args.seed, **_repeats(args))
-    elif args.what == "pick-geometry":
-        from romannet.bench.pick_geometry import markdown, run_pick_geometry_benchmark
-
-        hands = tuple(h.strip() for h in args.hands.split(",") if h.strip())
-        sizes = tuple(float(c) for c in args.cube_sizes.split(",") if c.strip())
-        robot = args.robots.split(",")[-1].strip()
-        result = run_pick_geometry_benchmark(hands=hands, cube_sizes_m=sizes, robot=robot, seed=args.seed)
-        result["markdown"] = markdown(result)
-    elif args.what == "faults":
-        from romannet.bench.faults import run_fault_scenario_checked
-
-        result = run_fault_scenario_checked()
-    else:  # argparse choices make this unreachable; kept explicit for the error message
-        raise SystemExit(f"unknown benchmark {args.what!r}")
-    text = json.dumps(result, indent=None if args.json else 2)
-    sys.stdout.write(text + "\n")
-    return 1 if result.get("ok") is False else 0
 
 
 def parse_action(text: str):
@@ -238,82 +192,6 @@ def cmd_up(args: argparse.Namespace) -> int:
     from romannet.up import run
 
     return run(args)
-
-
-# Each benchmark: (one line for the list, what it measures for its --help, its example, the options it reads
-# besides --json).
-BENCHMARKS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
-    "inference": ("the actor's decision latency against baselines",
-                  "The actor's decision latency (forward passes of the three nets and the choice of action) "
-                  "against the naive eager fp32 baselines.", "romannet bench inference --json", ("seed", "repeats")),
-    "replay": ("durable inserts/s, sample latency, recovery time, cost of the pixel check",
-               "The replay server over loopback Zenoh: durable inserts per second, sample latency, the time "
-               "to recover --inserts transitions from its log, and what decoding every PNG at insert costs "
-               "(the same inserts into a server started with --skip-pixel-decode).",
-               "romannet bench replay --json --inserts 2000 --repeats 200", ("seed", "repeats", "inserts")),
-    "sim": ("simulator actions/s per task, ms per render, heightmap and primitive",
-            "The simulator: actions per second per task, and milliseconds per render, heightmap and primitive, "
-            "for each robot mode.", "romannet bench sim --json --actions 10 --robots arm,gripper",
-            ("seed", "actions", "robots")),
-    "learner": ("transitions trained/s per batch size",
-                "Transitions trained per second for each batch size, against the naive eager fp32 step.",
-                "romannet bench learner --json --batch-sizes 1,4,8 --repeats 10",
-                ("seed", "repeats", "batch_sizes", "device")),
-    "system": ("fleet actions/s, weights latency, where actor time goes",
-               "The whole fleet (`romannet up`): actions per second with 1 and 2 gripper actors, weights "
-               "latency to 1 and 8 actors, and the share of actor time in simulation, inference, encoding and "
-               "transport.", "romannet bench system --json --actions 30", ("seed", "repeats", "actions")),
-    "pick-geometry": ("which picks of a lone cube each hand holds",
-                      "Which picks of a lone cube each simulated hand holds, by offset from the cube's centre "
-                      "and by angle.", "romannet bench pick-geometry --hands panda,rg2 --cube-sizes 0.05,0.04",
-                      ("seed", "robots", "hands", "cube_sizes")),
-    "faults": ("a secure multi-host fleet through kill -9, a cut link and an intruder (root)",
-               "A secure fleet on five Linux network-namespace hosts (a router; the replay server and the "
-               "learner; two actors; an operator), with the configs `romannet deploy certs` writes: mutual TLS, "
-               "access control denying by default. During one short training run it tries an intruder with "
-               "actor-0's certificate and clients with no certificate or another CA's, kills the replay "
-               "server, the learner (restarted with --resume) and an actor with SIGKILL, and cuts one actor's "
-               "link for 10 s. It prints each fault's recovery time, each access-control check, and the "
-               "transitions sent, acknowledged, stored, lost and duplicated. Needs root (ip netns) and about "
-               "a minute. Exit 1 if a transition is lost or duplicated, something is allowed that must be "
-               "denied, or a process does not stop cleanly.", "sudo romannet bench faults --json", ()),
-}
-
-
-def add_bench_arguments(p: argparse.ArgumentParser) -> None:
-    """One sub-command per benchmark, each with its description, example and only the options it reads."""
-    import textwrap
-
-    sub = p.add_subparsers(dest="what", required=True, metavar="<benchmark>")
-    for name, (short, what, example, options) in BENCHMARKS.items():
-        q = sub.add_parser(name, help=short, description=textwrap.fill(what, 100),
-                           epilog=f"example:\n  {example}", formatter_class=argparse.RawDescriptionHelpFormatter)
-        q.add_argument("--json", action="store_true", help="print compact JSON on one line")
-        # cmd_bench reads every field; a benchmark without the option gets its default.
-        q.set_defaults(seed=0, repeats=None, inserts=2000, actions=10, robots="arm,gripper", hands="panda,rg2",
-                       cube_sizes="0.05,0.04", batch_sizes="1,4,8", device="cpu")
-        if "seed" in options:
-            q.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-        if "repeats" in options:
-            q.add_argument("--repeats", type=int, default=None,
-                           help="timed repeats per measurement (median reported); default: the benchmark's own")
-        if "inserts" in options:
-            q.add_argument("--inserts", type=int, default=2000, help="transitions inserted (and recovered)")
-        if "actions" in options:
-            q.add_argument("--actions", type=int, default=10,
-                           help="actions per task and policy" if name == "sim" else "actions per actor")
-        if "robots" in options:
-            q.add_argument("--robots", default="arm,gripper",
-                           help="comma-separated robot modes (arm, gripper)" if name == "sim"
-                           else "the robot mode (arm or gripper; the last of a comma-separated list)")
-        if "hands" in options:
-            q.add_argument("--hands", default="panda,rg2", help="comma-separated sim.hand values")
-        if "cube_sizes" in options:
-            q.add_argument("--cube-sizes", default="0.05,0.04", help="comma-separated cube edges (m)")
-        if "batch_sizes" in options:
-            q.add_argument("--batch-sizes", default="1,4,8", help="comma-separated transitions per update")
-        if "device" in options:
-            q.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (when there is a GPU)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -486,54 +364,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_mcap_arguments(verb("mcap", MCAP_SUMMARY, cmd_mcap))
     return parser
-
-
-def with_choice_hint(message: str) -> str:
-    """argparse's "invalid choice: 'replya' (choose from ...)" with "; did you mean replay?" for a near miss."""
-    m = re.fullmatch(r"argument .+?: invalid choice: '(.*)' \(choose from (.*)\)", message, re.DOTALL)
-    if m is None:
-        return message
-    close = difflib.get_close_matches(m[1], re.findall(r"'([^']*)'", m[2]), n=1, cutoff=0.6)
-    return f"{message}; did you mean {close[0]}?" if close else message
-
-
-class Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose invalid-choice errors suggest the choice meant (verbs, tools, --task values).
-    Sub-command parsers are of the same class (add_subparsers' default), so every level has it."""
-
-    def error(self, message: str):  # type: ignore[override]
-        super().error(with_choice_hint(message))
-
-
-def chosen_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
-    """The (sub-)parser of the verb and tool the user named, e.g. `deploy certs`'s: its usage is the one to show."""
-    while True:
-        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
-        name = getattr(args, subs[0].dest, None) if subs else None
-        if not subs or name not in subs[0].choices:
-            return parser
-        parser = subs[0].choices[name]
-
-
-def unknown_args_message(extras: list[str], options: list[str]) -> str:
-    """'unrecognized arguments: --lisen x; did you mean --listen?' (the hint for the near misses only)."""
-    flags = [a.split("=", 1)[0] for a in extras if a.startswith("--")]
-    meant = {f: close[0] for f in flags if (close := difflib.get_close_matches(f, options, n=1, cutoff=0.6))}
-    text = f"unrecognized arguments: {' '.join(extras)}"
-    if len(meant) == 1 and len(flags) == 1:
-        return f"{text}; did you mean {next(iter(meant.values()))}?"
-    return text + "".join(f"; {f}: did you mean {m}?" for f, m in meant.items())
-
-
-def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
-    """parse_args, except that arguments the verb does not know are reported with the verb's own usage
-    (argparse would show the top-level one) and, for a near-miss flag, the flag that was meant."""
-    args, extras = parser.parse_known_args(argv)
-    if extras:
-        where = chosen_parser(parser, args)
-        options = [o for a in where._actions for o in a.option_strings if o.startswith("--")]
-        where.error(unknown_args_message(extras, options))
-    return args
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -163,7 +163,8 @@ def test_bench_faults_help_describes_the_faults_benchmark() -> None:
 
 def test_every_benchmark_and_deploy_tool_has_a_description_and_an_example() -> None:
     # In-process (the parsers `romannet` builds): one process per sub-command would cost seconds each.
-    from romannet.cli import build_parser, chosen_parser
+    from romannet.cli import build_parser
+    from romannet.cli_parser import chosen_parser
 
     parser = build_parser()
     tools = [("bench", b) for b in ("inference", "replay", "sim", "learner", "system", "pick-geometry", "faults")]
@@ -184,7 +185,7 @@ def test_mistyped_verb_gets_the_verb_meant() -> None:
 
 
 def test_choice_hints() -> None:
-    from romannet.cli import with_choice_hint
+    from romannet.cli_parser import with_choice_hint
 
     msg = "argument <tool>: invalid choice: 'cert' (choose from 'certs', 'configs', 'check')"
     assert with_choice_hint(msg) == msg + "; did you mean certs?"
