@@ -50,6 +50,25 @@ def write_snapshot(directory: Path, sequence: int, meta: dict[str, Any], arrays:
     return path
 
 
+def index_arrays(ids: np.ndarray, priorities: np.ndarray, keys: list[Any], loc: np.ndarray,
+                 policy_versions: np.ndarray) -> tuple[dict[str, np.ndarray], list[str], list[int]]:
+    """A snapshot's arrays for the items held (ids, priorities, idempotency keys (actor, episode, step),
+    Location rows, policy versions), with the actor and episode tables their `actor`/`episode` index."""
+    actors = sorted({k[0] for k in keys if k})
+    episodes = sorted({k[1] for k in keys if k})
+    a_index = {a: i for i, a in enumerate(actors)}
+    e_index = {e: i for i, e in enumerate(episodes)}
+    arrays = {
+        "item_id": ids, "priority": priorities, "segment": loc[:, 0], "chunk_offset": loc[:, 1],
+        "chunk_first_id": loc[:, 2], "data_offset": loc[:, 3], "length": loc[:, 4],
+        "policy_version": policy_versions,
+        "actor": np.array([a_index[k[0]] for k in keys if k], dtype=np.int32),
+        "episode": np.array([e_index[k[1]] for k in keys if k], dtype=np.int64),
+        "step": np.array([k[2] for k in keys if k], dtype=np.int64),
+    }
+    return arrays, actors, episodes
+
+
 def _load(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     with np.load(path, allow_pickle=False) as npz:
         arrays = {name: npz[name] for name in npz.files}

@@ -13,7 +13,8 @@ Damage: recovery names every acknowledged item it cannot get back, and the store
 such a loss (ReplayLossError, one line with the count and ids) until it is accepted (`accept_loss`),
 which records it in <dir>/losses.json first. Every sampled record is checked against its own checksum
 (recordcheck.py) as it is read; a damaged one is quarantined: taken out of the index, recorded in
-losses.json, counted in stats, and the batch is drawn again without it.
+losses.json, counted in stats, and the batch is drawn again without it. The loss check at open and the
+quarantine record are store_losses.py's, reading a drawn batch store_reads.py's.
 """
 
 from __future__ import annotations
@@ -39,14 +40,14 @@ from romannet.common.wire import (
     encode_transition,
 )
 
-from .batchcodec import sample_batch_layout
-from .log import Location, SegmentLog, is_legacy_segment, list_segments, segment_number
-from .losses import Loss, ReplayLossError, describe, load_losses, quarantined_ids, record_losses, unaccepted
+from .log import Location, SegmentLog
 from .prioritized import RankBasedSampler, annealed_beta, is_weights
 from .ratelimiter import RateLimiter
 from .recordcheck import record_problem
-from .recovery import ItemMeta, Key, Recovered, log_summary, priority_suffix, repair, scan_directory
-from .snapshot import write_snapshot
+from .recovery import ItemMeta, Key, priority_suffix
+from .snapshot import index_arrays, write_snapshot
+from .store_losses import recover
+from .store_reads import Drawn, read_batch, read_batch_encoded
 from .storestats import RateMeter, build_stats
 
 log = logging.getLogger(__name__)
@@ -96,10 +97,8 @@ class ReplayStore:
         self._closed = False
         self._limiter = RateLimiter(cfg.min_size_to_sample, cfg.samples_per_insert, cfg.spi_tolerance)
         self._dir_lock = DirectoryLock(self.directory, "replay directory")  # before recovery repairs anything
-        self._quarantine_mu = threading.Lock()  # losses.json writes
-        self._quarantined: dict[int, str] = {}  # found damaged while this store ran: id -> why
         try:
-            self.recovered = self._recover(accept_loss)
+            self.recovered, self._losses, self._legacy_segments = recover(self.directory, accept_loss)
             self._load(self.recovered)
             self._log = SegmentLog(self.directory, cfg.segment_max_bytes, cfg.fsync, cfg.group_commit)
         except BaseException:
@@ -111,33 +110,6 @@ class ReplayStore:
         self._snapshotter.start()
 
     # ------------------------------------------------------------------------------------------ recovery
-    def _recover(self, accept_loss: bool) -> Recovered:
-        """Scan; refuse (or record, if accepted) a loss not recorded before; repair; drop quarantined items."""
-        rec = scan_directory(self.directory)
-        recorded = load_losses(self.directory)
-        new = unaccepted(rec.losses, recorded)
-        if new and not accept_loss:
-            raise ReplayLossError(
-                f"replay directory {self.directory} cannot recover {_summary(new)}; restore the damaged "
-                "files if you can, or start with --accept-loss to go on without those items (they are then "
-                "recorded in losses.json)")
-        for loss in new:
-            log.error("replay directory %s: lost %s; accepted, recorded in losses.json", self.directory,
-                      describe(loss))
-        record_losses(self.directory, new, "accepted at start (--accept-loss)")
-        repair(self.directory, rec)
-        log_summary(rec)
-        recorded += new
-        self._lost_items = sum(loss.count for loss in recorded if loss.kind == "lost")
-        self._recorded_quarantine = quarantined_ids(recorded)
-        if self._recorded_quarantine:  # a restart from a snapshot taken before they were found
-            quarantined, split = self._recorded_quarantine, len(rec.items) - rec.tail_items
-            head = [it for it in rec.items[:split] if it[0] not in quarantined]
-            tail = [it for it in rec.items[split:] if it[0] not in quarantined]
-            rec.items, rec.tail_items = head + tail, len(tail)
-        self._legacy_segments = {segment_number(p) for p in list_segments(self.directory) if is_legacy_segment(p)}
-        return rec
-
     def _load(self, rec: Any) -> None:
         c = rec.counters
         self._c.update(c.get("counts", {}))
@@ -266,21 +238,8 @@ class ReplayStore:
                request_id: str = "local") -> SampleBatchMsg:
         """A prioritized batch (with replacement) of stored transitions as encoded bytes, with P(i) and
         IS weights. Raises TimeoutError while the rate limiter holds sampling back for timeout_s seconds."""
-        def read(drawn: list[tuple[int, float, float, Location]]) -> tuple[list[bytes], dict[int, str]]:
-            datas, bad = [], {}
-            for item_id, _, _, loc in drawn:
-                try:
-                    datas.append(self._log.read(loc))
-                except OSError as exc:
-                    datas.append(b"")
-                    bad[item_id] = f"item {item_id}: unreadable ({exc})"
-                    continue
-                problem = self._problem(item_id, loc, datas[-1])
-                if problem:
-                    bad[item_id] = problem
-            return datas, bad
-
-        drawn, size, datas = self._draw(batch_size, timeout_s, rng, read)
+        drawn, size, datas = self._draw(batch_size, timeout_s, rng,
+                                        lambda d: read_batch(self._log, d, self._problem))
         items = tuple(SampleItem(i, p, w, d) for (i, p, w, _), d in zip(drawn, datas, strict=True))
         return SampleBatchMsg(request_id, items, size)
 
@@ -288,22 +247,8 @@ class ReplayStore:
                        request_id: str = "local") -> bytearray:
         """sample() as the protobuf SampleBatch the server sends (what wire.encode_sample_batch would give),
         with each transition read from the log straight into its place in the reply (batchcodec)."""
-        def read(drawn: list[tuple[int, float, float, Location]]) -> tuple[bytearray, dict[int, str]]:
-            buf, offsets = sample_batch_layout(request_id, len(self._sampler),
-                                               [(i, p, w, loc.length) for i, p, w, loc in drawn])
-            view = memoryview(buf)
-            bad = {}
-            for (item_id, _, _, loc), off in zip(drawn, offsets, strict=True):
-                hole = view[off:off + loc.length]
-                try:
-                    self._log.read_into(loc, hole)
-                except OSError as exc:
-                    bad[item_id] = f"item {item_id}: unreadable ({exc})"
-                    continue
-                problem = self._problem(item_id, loc, hole)
-                if problem:
-                    bad[item_id] = problem
-            return buf, bad
+        def read(drawn: Drawn) -> tuple[bytearray, dict[int, str]]:
+            return read_batch_encoded(self._log, request_id, len(self._sampler), drawn, self._problem)
 
         return self._draw(batch_size, timeout_s, rng, read)[2]
 
@@ -314,8 +259,7 @@ class ReplayStore:
         return record_problem(item_id, data)
 
     def _draw(self, batch_size: int, timeout_s: float, rng: np.random.Generator | None,
-              read: Callable[[list[tuple[int, float, float, Location]]], tuple[_T, dict[int, str]]]) -> tuple[
-                  list[tuple[int, float, float, Location]], int, _T]:
+              read: Callable[[Drawn], tuple[_T, dict[int, str]]]) -> tuple[Drawn, int, _T]:
         """Draw a batch: ([(id, P(i), IS weight, location)], buffer size, read(that list) under the lock).
 
         read also returns the damaged items it met (id -> why); they are quarantined and the batch is
@@ -348,7 +292,7 @@ class ReplayStore:
                 self._c["samples"] += batch_size
         finally:
             if found:
-                self._record_quarantine(found)
+                self._losses.record_quarantine(found)
         self._sample_rate.add(batch_size)
         return drawn, size, data
 
@@ -365,19 +309,6 @@ class ReplayStore:
         self._bytes -= int(self._loc[slot, 4])
         self._c["quarantined"] += 1
         self._limiter.set_size(len(self._sampler))
-
-    def _record_quarantine(self, found: dict[int, str]) -> None:
-        """Log and record items found damaged (losses.json), so no restart offers them again."""
-        with self._quarantine_mu:
-            fresh = {i: why for i, why in found.items() if i not in self._quarantined}
-            self._quarantined.update(fresh)
-            losses = [Loss("quarantined", why, ((i, i + 1),)) for i, why in sorted(fresh.items())]
-            for loss in losses:
-                log.error("replay item %d quarantined, never sampled again: %s", loss.ranges[0][0], loss.what)
-            try:
-                record_losses(self.directory, losses, "quarantined when read")
-            except OSError as exc:
-                log.error("could not record quarantined item(s) in losses.json: %s", exc)
 
     def update_priorities(self, update: PriorityUpdateMsg) -> int:
         """Apply new priorities by item id; ids no longer held are ignored. Returns the number applied."""
@@ -402,9 +333,8 @@ class ReplayStore:
                               self._insert_rate.rate(), self._sample_rate.rate(), dict(self._per_actor_held),
                               dict(self._per_actor_inserts), dict(self._rejected), self._limiter.counters())
         out["log_fsyncs"] = self._log.fsyncs
-        with self._quarantine_mu:
-            quarantined = sorted(self._recorded_quarantine | set(self._quarantined))
-        out["lost_items"] = self._lost_items  # accepted at a recovery (losses.json)
+        quarantined = self._losses.quarantined()
+        out["lost_items"] = self._losses.lost_items  # accepted at a recovery (losses.json)
         out["quarantined_items"] = len(quarantined)
         out["quarantined_ids"] = quarantined[-100:]
         return out
@@ -425,20 +355,9 @@ class ReplayStore:
     def _snapshot_state(self) -> tuple[dict, dict, int, int | None]:
         ids, prios = self._sampler.items()
         slots = ids % self.cfg.capacity_items
-        keys = [self._keys[s] for s in slots.tolist()]
-        actors = sorted({k[0] for k in keys if k})
-        episodes = sorted({k[1] for k in keys if k})
-        a_index = {a: i for i, a in enumerate(actors)}
-        e_index = {e: i for i, e in enumerate(episodes)}
         loc = self._loc[slots]
-        arrays = {
-            "item_id": ids, "priority": prios, "segment": loc[:, 0], "chunk_offset": loc[:, 1],
-            "chunk_first_id": loc[:, 2], "data_offset": loc[:, 3], "length": loc[:, 4],
-            "policy_version": self._pv[slots],
-            "actor": np.array([a_index[k[0]] for k in keys if k], dtype=np.int32),
-            "episode": np.array([e_index[k[1]] for k in keys if k], dtype=np.int64),
-            "step": np.array([k[2] for k in keys if k], dtype=np.int64),
-        }
+        arrays, actors, episodes = index_arrays(ids, prios, [self._keys[s] for s in slots.tolist()], loc,
+                                                self._pv[slots])
         last = self._last_loc
         next_id = self._next_id - len(self._pending_meta)  # ids at or above are not durable yet
         counters = {"counts": dict(self._c), "per_actor_inserts": dict(self._per_actor_inserts),
@@ -447,10 +366,7 @@ class ReplayStore:
         meta = {"next_item_id": next_id, "lo": self._lo, "actors": actors, "episodes": episodes,
                 "scan_from": None if last is None else [last.segment, last.chunk_offset, last.chunk_first_id],
                 "counters": counters}
-        if len(ids):
-            reclaim_below: int | None = int(loc[0, 0])
-        else:
-            reclaim_below = None if last is None else last.segment
+        reclaim_below = int(loc[0, 0]) if len(ids) else (None if last is None else last.segment)
         return meta, arrays, next_id, reclaim_below
 
     def _snapshot_loop(self) -> None:
@@ -494,11 +410,3 @@ class ReplayStore:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-
-def _summary(losses: list[Loss]) -> str:
-    """'N acknowledged item(s): <loss>; <loss>' in one line."""
-    total = sum(loss.count for loss in losses)
-    uncounted = any(loss.uncounted for loss in losses)
-    head = f"{total} acknowledged item(s){' or more' if uncounted else ''}" if total else \
-        "an uncounted number of acknowledged items"
-    return f"{head}: " + "; ".join(describe(loss) for loss in losses)
