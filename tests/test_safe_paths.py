@@ -69,7 +69,8 @@ def test_rescore_out_never_writes_outside_out_for_crafted_ids(tmp_path: Path) ->
     inputs, out = tmp_path / "in", tmp_path / "work" / "deep" / "out"
     good = record_episode(inputs / "good.mcap", steps=3)
     absolute = str(tmp_path / "escaped-absolute")  # an absolute id would replace everything before it
-    crafted = [*CRAFTED, ("actor-absolute.mcap", {"actor_id": absolute}, repr(absolute))]
+    # Its shown value is cut to fit one line, where depends on the temporary path's length: not compared.
+    crafted = [*CRAFTED, ("actor-absolute.mcap", {"actor_id": absolute}, "")]
     for name, episode, _ in crafted:
         _craft(good.path, inputs / name, episode)
     assert read_episode(inputs / "run-up.mcap").episode["run_id"] == "../../escaped-run"
