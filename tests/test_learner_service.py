@@ -196,8 +196,10 @@ def test_replay_learner_actor_round_trip_sigterm_and_resume(tmp_path: Path, proc
     rport, lport = free_port(), free_port()
     learner_args = ["learner", "--run-dir", str(run_dir), "--listen", f"tcp/127.0.0.1:{lport}",
                     "--connect", f"tcp/127.0.0.1:{rport}"]
+    # --skip-pixel-decode: a server that checks PNG headers and CRCs only (the default decodes every PNG and
+    # refuses the corrupt one below), so the learner's own skip of an undecodable item is what is tested.
     procs.append(Proc(tmp_path, "replay", ["replay", "--config", str(config), "--dir", str(tmp_path / "replay"),
-                                           "--listen", f"tcp/127.0.0.1:{rport}"]))
+                                           "--listen", f"tcp/127.0.0.1:{rport}", "--skip-pixel-decode"]))
     learner = Proc(tmp_path, "learner", [*learner_args, "--config", str(config)])
     procs.append(learner)
     keys = RunKeys(RUN)
