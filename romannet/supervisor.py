@@ -196,12 +196,9 @@ class Supervisor:
     # ------------------------------------------------------------------------------------ watching
     def poll(self) -> None:
         """Reap exited children, decide restarts, and start those whose backoff is over."""
+        self.reap()
         now = self._clock()
         for name, child in self.children.items():
-            if child.state == "running" and child.proc is not None:
-                code = child.proc.poll()
-                if code is not None:
-                    self._exited(name, child, code, now)
             if child.state == "backoff" and not self.stopping and now >= child.restart_at:
                 log.warning("restarting %s (restart %d within %.0f s)", name, len(child.restarts),
                             self.policy.window_s)
