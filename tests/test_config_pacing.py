@@ -93,3 +93,11 @@ def test_an_update_cap_below_the_sampling_ratio_deadlocks_and_is_refused() -> No
 def test_a_learner_batch_larger_than_the_replay_serves_is_refused() -> None:
     with pytest.raises(ConfigError, match=r"learner.batch_size.*replay.max_batch_size \(8\)"):
         load_config(overrides=["replay.max_batch_size=8", "learner.batch_size=16"])
+
+
+def test_the_first_update_waits_for_the_larger_of_the_two_thresholds():
+    from romannet.common.config_pacing import transitions_before_first_update
+
+    replay, learner = ReplayConfig(min_size_to_sample=64), LearnerConfig(min_replay_size=32)
+    assert transitions_before_first_update(replay, learner) == 64
+    assert transitions_before_first_update(ReplayConfig(min_size_to_sample=8), learner) == 32
