@@ -64,7 +64,8 @@ EXAMPLES = {
               "configs/experiments/stacking-baseline.toml --seeds 1 2 3 --max-actions 2500 --out sweeps/stack-abl\n"
               "  romannet sweep --config configs/experiments/clutter.toml --seeds 1 2 --max-actions 2500 "
               "--eval-objects 30 --eval-object-set novel --out sweeps/clutter"),
-    "plot": "romannet plot runs/abl-baseline runs/abl-tpg runs/stack-h4 --labels baseline +TPG +TPG+LAE --out abl.png",
+    "plot": ("romannet plot runs/demo --out demo.png\n"
+             "  romannet plot runs/abl-baseline runs/abl-tpg runs/stack-h4 --labels baseline +TPG +TPG+LAE --out abl.png"),
     "mcap": ("romannet mcap inspect runs/demo/episodes\n  romannet mcap play runs/demo/episodes/actor-0/ep000000.mcap "
              "--foxglove 8765\n  romannet mcap feed runs/demo/episodes --run-id offline-1 --connect "
              "tcp/127.0.0.1:7447\n  romannet mcap export runs/demo/episodes/actor-0/ep000000.mcap --video ep0.mp4\n"
@@ -165,7 +166,17 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
     from romannet.evaluate.curves import plot_runs
 
-    summary = plot_runs([Path(d) for d in args.run_dirs], Path(args.out), args.window, args.labels)
+    if len(args.run_dirs) == 1 and not args.labels:  # one run: its own figure, the one `up` keeps in the run
+        from romannet.evaluate.run_curves import summary as curves_summary
+        from romannet.evaluate.run_report import RunReport
+
+        run_dir = Path(args.run_dirs[0])
+        if not (run_dir / "config.toml").is_file():
+            raise RomannetError(f"{run_dir}: not a run directory (it has no config.toml)")
+        summary = {"run_dir": str(run_dir), **curves_summary(RunReport(run_dir, args.window, board=False)
+                                                               .refresh(Path(args.out)))}
+    else:
+        summary = plot_runs([Path(d) for d in args.run_dirs], Path(args.out), args.window, args.labels)
     print(json.dumps(summary, indent=1))
     return 0
 
@@ -341,9 +352,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_sweep_arguments(p)
 
-    p = verb("plot", "learning curves (action success rate and efficiency over training actions) of run "
-             "directories into one PNG: one line per run, or per label shared by several runs (their mean "
-             "and range)", cmd_plot)
+    p = verb("plot", "learning curves over training actions into one PNG: of one run, action success and "
+             "efficiency, episode completion, return and length, actions per second (the run's own "
+             "training_curves.png); of several, action success and efficiency, one line per run or per label "
+             "shared by several runs (their mean and range)", cmd_plot)
     p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
     p.add_argument("--out", required=True, metavar="FILE.png")
     p.add_argument("--window", type=int, default=200, metavar="N", help="sliding window in actions (200)")

@@ -19,6 +19,7 @@ The run directory `<runs-dir>/<name>/` holds (config.toml is written first, befo
     pids.json             the launcher's and each child's current pid
     replay/               the replay server's log segments and snapshots
     checkpoints/ metrics.csv tensorboard/ learning_curves.png    the learner's
+    training_curves.png tensorboard/episodes/   success, completion, return, length, actions/s over actions
     actors/<id>/status.json  episodes/<id>/*.mcap                 each actor's
     actors/ledger.json    each actor's totals over the run's launches and restarts (what --max-actions counts)
     launch.json           this launch's --actors and --max-actions (a --resume's defaults)
@@ -275,6 +276,8 @@ def run(args: argparse.Namespace) -> int:
     from romannet.common.keys import RunKeys
     from romannet.common.replay_client import ZenohReplayClient
     from romannet.common.zenoh_session import free_port, make_config, open_session, wait_for_liveliness
+    from romannet.evaluate.run_curves import curve_window
+    from romannet.evaluate.run_report import LiveRunReport
 
     check_init_from(args)
     run_dir, cfg = prepare_run(args)
@@ -328,6 +331,7 @@ def run(args: argparse.Namespace) -> int:
     outcome = "stopped"
     final: dict[str, Any] | None = None
     progress = FleetProgress(run_dir, ledger=ledger)
+    report = LiveRunReport(run_dir, curve_window(args.max_actions or 0))  # training_curves.png, tensorboard/episodes
     try:
         with open_session(make_config(listen=[], connect=[replay_ep, learner_ep])) as session:
             client = ZenohReplayClient(session, cfg.run_id)
@@ -353,8 +357,11 @@ def run(args: argparse.Namespace) -> int:
         display.clear()
         for h in console:
             h.removeFilter(clear)
+        report.close()  # after the actors stopped: the curves end with every recorded action
     _summary(run_dir, progress.snapshot(), final, sup, outcome, time.monotonic() - started, ledger.start_total(),
              first_update)
+    log.info("curves of run %s: %s (what the robot did), %s (the learner); live: tensorboard --logdir %s",
+             run_dir.name, run_dir / "training_curves.png", run_dir / "learning_curves.png", run_dir.parent)
     unclean = sup.unclean()
     if unclean:
         log.warning("not every child stopped cleanly: %s (see %s)",

@@ -187,6 +187,14 @@ def _check_run(up: Up, expected_actions: int, learning: bool = True) -> dict[str
     assert rows and int(rows[-1]["update"]) >= 2, "the learner made no updates"
     assert (run_dir / "checkpoints" / "LATEST").is_file() and (run_dir / "learning_curves.png").is_file()
     assert (run_dir / "config.toml").is_file() and (run_dir / "launcher.log").is_file()
+    # The launcher's own curves of what the actors did: the PNG and the TensorBoard events with the config.
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    assert (run_dir / "training_curves.png").is_file()
+    board = EventAccumulator(str(run_dir / "tensorboard" / "episodes"))
+    board.Reload()
+    assert "config" in board.Tags()["tensors"] and "actions/success_rate" in board.Tags()["scalars"]
+    assert board.Scalars("actions/success_rate")[-1].step <= expected_actions
 
     # No process outlives the launcher.
     pids = up.pids()

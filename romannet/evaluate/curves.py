@@ -60,6 +60,19 @@ def _ideal(task: str, goal_height: int, records: Sequence[dict]) -> int:
     return left + int(first.get("primitive") == "pick" and bool(first.get("success")))
 
 
+def episode_actions(task: str, goal_stack_height: int, records: Sequence[dict]) -> list[TrainingAction]:
+    """The training actions of one episode file's /step records (read_step_records), in order."""
+    if not records:
+        return []
+    ideal = _ideal(task, goal_stack_height, records)
+    out = []
+    for i, r in enumerate(records):
+        last = i == len(records) - 1
+        end = str(r.get("done_reason") or "") if last and r.get("done") else ""
+        out.append(TrainingAction(int(r["_t_ns"]), bool(r.get("success")), end, ideal if end == "done" else 0))
+    return out
+
+
 def run_actions(run_dir: Path) -> tuple[list[TrainingAction], dict]:
     """Every training action of a run (all actors), in time order, and the run's task settings."""
     from romannet.common.config import load_config
@@ -74,14 +87,7 @@ def run_actions(run_dir: Path) -> tuple[list[TrainingAction], dict]:
         except (EpisodeFileError, ValueError) as err:  # not an episode, or a broken record: one line, go on
             log.warning("%s skipped: %s", path, err)
             continue
-        if not records:
-            continue
-        ideal = _ideal(task, goal, records)
-        for i, r in enumerate(records):
-            last = i == len(records) - 1
-            end = str(r.get("done_reason") or "") if last and r.get("done") else ""
-            actions.append(TrainingAction(int(r["_t_ns"]), bool(r.get("success")), end,
-                                          ideal if end == "done" else 0))
+        actions.extend(episode_actions(task, goal, records))
     actions.sort(key=lambda a: a.t_ns)
     return actions, {"task": task, "goal_stack_height": goal, "episode_files": len(files)}
 

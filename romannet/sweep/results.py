@@ -13,6 +13,7 @@ from typing import Any
 
 from romannet.common.fsutil import write_json_atomic, write_text_atomic
 from romannet.evaluate.compare import spread
+from romannet.evaluate.run_curves import curve_window
 
 EVAL_METRICS = ("completion_rate", "pick_success_rate", "action_efficiency")
 LAST_ACTIONS = 500  # the training success rate is over this many last actions, as docs/results.md reports it
@@ -113,11 +114,6 @@ def collect(manifest: Mapping[str, Any], jobs: Sequence[Any], eval_dirs: Mapping
         if report is not None:
             policies[name] = run_entry(report, None)
     return build_results(manifest, variants, policies)
-
-
-def curve_window(max_actions: int) -> int:
-    """The curves' sliding window: romannet plot's 200 actions, narrower for short runs so they draw a curve."""
-    return max(1, min(200, max_actions // 5))
 
 
 def plot_curves(jobs: Sequence[Any], out: Path, max_actions: int) -> Path:
