@@ -34,6 +34,7 @@ from romannet.common.policy import InferenceEngine
 from romannet.common.replay_client import ZenohReplayClient
 from romannet.common.signals import stop_on_signals
 from romannet.common.weights_client import ZenohWeightsSource
+from romannet.common.zenoh_limits import FLEET_MAX_MESSAGE_BYTES, limit_messages
 from romannet.common.zenoh_session import make_config, open_session
 
 from .service import ActorPaths, actor_section, read_next_episode, run_actor
@@ -84,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
     read_next_episode(paths.state, paths.episodes)  # a damaged state.json: one line now, before any start-up
     write_toml(cfg, paths.root / "config.toml")  # what this actor ran with (also in every MCAP file)
     zenoh_config = make_config(args.zenoh_config, listen=args.listen or None, connect=args.connect or None)
+    limit_messages(zenoh_config, FLEET_MAX_MESSAGE_BYTES, "actor")  # weights are the largest it receives
     ws = cfg.workspace
     stop = threading.Event()
 

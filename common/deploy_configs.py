@@ -8,6 +8,8 @@ The configs are plain Zenoh JSON5, read by zenoh-python (`--zenoh-config`) and b
   every client names the router it connects to.
 * A short link lease (LEASE_MS): a hung or unplugged machine is noticed in a few seconds, its liveliness
   tokens vanish, and its client reconnects by itself once the network is back.
+* A cap on message size (common/zenoh_limits.py): Zenoh holds a whole message before anyone can refuse
+  it, so the bound on memory is in the config.
 * BLOCK congestion control for every key of the project, enforced twice: each client's
   `qos.publication` makes its own puts BLOCK whatever the code asks, and the router's `qos.network`
   rewrites the puts and queries it forwards. (Queries and replies already default to BLOCK; the default
@@ -28,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from .keys import PREFIX, check_chunk
+from .zenoh_limits import RX_LIMITS
 
 LEASE_MS = 3000  # a silent link is declared dead after this; keep-alives every LEASE_MS / KEEP_ALIVE
 KEEP_ALIVE = 4
@@ -173,7 +176,8 @@ def access_control(actor_ids: Sequence[str]) -> dict[str, Any]:
 def _common(layout: SiteLayout) -> dict[str, Any]:
     return {
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {"link": {"tx": {"lease": layout.lease_ms, "keep_alive": KEEP_ALIVE}}},
+        "transport": {"link": {"tx": {"lease": layout.lease_ms, "keep_alive": KEEP_ALIVE},
+                               "rx": dict(RX_LIMITS)}},
     }
 
 
@@ -235,7 +239,7 @@ _ROUTER_COMMENTS = {
 _COMMENTS = {
     "scouting": "No multicast (a shared network must not join by accident), no gossip: the router is named.",
     "transport": (f"lease_ms {LEASE_MS}: a hung or unplugged machine is dropped, and its liveliness tokens vanish, "
-                  "within a few seconds."),
+                  "within a few seconds; rx: messages over 256 MiB are dropped on arrival (services lower it)."),
     "qos": "BLOCK congestion control for every key of the fleet (the default DROP loses large messages).",
     "adminspace": "Read-only admin space (@/<zid>/router/**): what is connected and declared.",
     "access_control": "Deny by default; each certificate common name gets its role's rules only.",

@@ -21,6 +21,7 @@ from typing import Any
 import zenoh
 
 from .errors import RomannetError
+from .zenoh_limits import RX_LIMITS
 from .zenoh_session import open_zenoh
 
 log = logging.getLogger(__name__)
@@ -42,7 +43,8 @@ def make_router_config(config_file: str | Path | None, listen: Sequence[str] | N
             raise RomannetError(f"{path} is a {mode!r} config; `romannet router` needs mode \"router\"")
     else:
         config = zenoh.Config.from_json5('{listen: {endpoints: ["tcp/0.0.0.0:7447"]}, '
-                                         'scouting: {multicast: {enabled: false}}}')
+                                         'scouting: {multicast: {enabled: false}}, '
+                                         f'transport: {{link: {{rx: {json.dumps(RX_LIMITS)}}}}}}}')
     config.insert_json5("mode", '"router"')
     if listen:
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))

@@ -27,11 +27,13 @@ from .errors import RomannetError
 
 log = logging.getLogger(__name__)
 
-# The embedded default (same as deploy/zenoh-local.json5): peer mode on loopback, no multicast.
+# The embedded default (same as deploy/zenoh-local.json5): peer mode on loopback, no multicast, and the
+# fleet's message cap (common/zenoh_limits.py; each service lowers it to what its role receives).
 DEFAULT_CONFIG_JSON5 = """{
   mode: "peer",
   listen: { endpoints: ["tcp/127.0.0.1:0"] },
   scouting: { multicast: { enabled: false }, gossip: { enabled: true } },
+  transport: { link: { rx: { buffer_size: 65535, max_message_size: 268435456 } } },
 }"""
 # Pause between attempts while no queryable matches yet: right after a session opens, its connection
 # and the remote declarations take ~0.1-0.5 s to arrive, and a get in that window returns no reply.

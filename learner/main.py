@@ -25,6 +25,7 @@ from pathlib import Path
 from romannet.common.config import Config, load_config
 from romannet.common.errors import RomannetError
 from romannet.common.signals import stop_on_signals
+from romannet.common.zenoh_limits import learner_receive_limit, limit_messages
 from romannet.common.zenoh_session import make_config, open_session
 
 from .batches import TolerantReplayClient
@@ -72,6 +73,9 @@ def run(args: argparse.Namespace) -> int:
         init_weights, what = read_init_weights(init_from, config.model)
         log.info("starting from the weights of %s", what)
     zenoh_config = make_config(args.zenoh_config, listen=args.listen or None, connect=args.connect or None)
+    # A sample batch is the largest thing a learner receives; Zenoh drops anything larger on arrival.
+    limit_messages(zenoh_config, learner_receive_limit(config.learner.batch_size, config.replay.max_item_bytes),
+                   "learner")
     ws = config.workspace
     stop = threading.Event()
 

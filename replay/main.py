@@ -22,6 +22,7 @@ from pathlib import Path
 from romannet.common.config import Config, load_config
 from romannet.common.config_replay import ReplayConfig
 from romannet.common.signals import stop_on_signals
+from romannet.common.zenoh_limits import limit_messages, replay_receive_limit
 from romannet.common.zenoh_session import make_config
 
 from .check import run_check
@@ -44,6 +45,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--dir DIR is required (or --check DIR to check a replay directory)")
     config, replay_cfg = load_replay_config(args.config, args.overrides)
     zenoh_config = make_config(args.zenoh_config, listen=args.listen or None, connect=args.connect or None)
+    # Zenoh drops a larger message on arrival, before it holds more than this of it.
+    limit_messages(zenoh_config, replay_receive_limit(replay_cfg.max_item_bytes), "replay server")
     ws = config.workspace
     limits = ServerLimits(max_insert_bytes=replay_cfg.max_item_bytes,
                           expected_shape=(ws.height_px, ws.width_px),
