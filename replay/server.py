@@ -2,14 +2,17 @@
 
 Threads: Zenoh calls our callbacks on its own threads, and a callback that blocks (an fsync, a sample
 waiting for the rate limiter) stalls every other message of the session. So callbacks only copy the
-payload and enqueue; three small worker pools do the work:
+payload's size and enqueue; three small worker pools do the work:
 - insert workers: validate the transition (its PNGs decoded in full), `store.insert` (durable), reply
   with the ack;
 - sample workers: `store.sample_encoded` (may wait for the rate limiter), reply with the batch. A pool
   of their own, because a sample waiting for inserts must never occupy the thread an insert needs
   (deadlock);
 - one control worker: priority updates and stats, in arrival order.
-A full queue is answered at once with an "overloaded" error instead of queueing without bound.
+A full queue is answered at once with an "overloaded" error instead of queueing without bound: at most
+max_pending messages and max_queued_bytes bytes wait. A message larger than its kind allows is refused in
+the callback, before it is queued or copied (Zenoh's own cap, common/zenoh_limits.py, drops far larger
+ones before they reach us).
 
 Bad input never crashes the server: it gets an error reply `<reason>: <detail>`, a log line (throttled)
 and a count in stats["server"]["rejected"][kind][reason].
@@ -34,6 +37,7 @@ from romannet.common import wire
 from romannet.common.errors import DecodeError
 from romannet.common.keys import RunKeys
 from romannet.common.wire_messages import InsertAckMsg, PriorityUpdateMsg, TransitionMsg
+from romannet.common.zenoh_limits import PRIORITY_UPDATE_BYTES
 from romannet.common.zenoh_session import format_error, open_zenoh
 
 from .rejections import Rejections, classify_decode_error
@@ -68,6 +72,11 @@ class ServerLimits:
     sample_workers: int = 2
     max_pending: int = 256
     max_insert_bytes: int = 16 * 1024 * 1024
+    # Bytes of queued messages; a message that would pass it waits unless the queue is empty (so one
+    # large valid transition is always taken). Bounds memory under a flood of large inserts.
+    max_queued_bytes: int = 64 * 1024 * 1024
+    # Any other message (priority updates, sample and stats requests); common/wire.py reads 4 MiB at most.
+    max_control_bytes: int = PRIORITY_UPDATE_BYTES
     default_wait_s: float = 5.0
     max_wait_s: float = 60.0
     expected_shape: tuple[int, int] | None = None
@@ -79,6 +88,11 @@ class ServerLimits:
 def _payload(obj: Any) -> bytes:
     payload = getattr(obj, "payload", None)
     return payload.to_bytes() if payload is not None else b""
+
+
+def _payload_size(obj: Any) -> int:
+    payload = getattr(obj, "payload", None)
+    return len(payload) if payload is not None else 0  # ZBytes' length: nothing is copied
 
 
 def _json_default(obj: Any) -> Any:
@@ -106,6 +120,7 @@ class ReplayServer:
         self._count_lock = threading.Lock()
         self._queues = {name: queue.Queue(maxsize=self.limits.max_pending)
                         for name in ("insert", "sample", "control")}
+        self._queued_bytes = 0  # payload bytes of every queued message, under _count_lock
         self._threads: list[threading.Thread] = []
         self._declared: list[Any] = []
         self._started_s = time.monotonic()
@@ -173,31 +188,55 @@ class ReplayServer:
 
     # --------------------------------------------------------------------------------- dispatching
     def _enqueue(self, kind: str, handler: Callable[[Any], None]) -> Callable[[Any], None]:
-        """A Zenoh callback that copies the message into the `kind` queue and returns at once."""
+        """A Zenoh callback that checks the message's size, queues it for `kind` and returns at once."""
         q = self._queues[kind]
+        max_bytes = self.limits.max_insert_bytes if kind == "insert" else self.limits.max_control_bytes
 
         def callback(obj: Any) -> None:
+            size = _payload_size(obj)
+            if size > max_bytes:
+                what = "transition" if kind == "insert" else "message"
+                self._refuse(obj, "oversized", f"{what} is {size} bytes; this server accepts at most {max_bytes}")
+                return
+            with self._count_lock:
+                over = self._queued_bytes > 0 and self._queued_bytes + size > self.limits.max_queued_bytes
+                if not over:
+                    self._queued_bytes += size
+            if over:
+                self._refuse(obj, "overloaded", f"{self.limits.max_queued_bytes} bytes of requests already "
+                             "queued; retry later", kind=kind)
+                return
             try:
-                q.put_nowait((handler, obj))
+                q.put_nowait((handler, obj, size))
             except queue.Full:
-                self._reject(obj, "overloaded", f"{q.maxsize} {kind} requests already queued; retry later",
+                self._release(size)
+                self._refuse(obj, "overloaded", f"{q.maxsize} {kind} requests already queued; retry later",
                              kind=kind)
-                if isinstance(obj, zenoh.Query):
-                    obj.drop()
         return callback
+
+    def _refuse(self, obj: Any, reason: str, detail: str, kind: str | None = None) -> None:
+        """Reject a message in the callback (never queued) and finalise it if it is a query."""
+        self._reject(obj, reason, detail, kind=kind)
+        if isinstance(obj, zenoh.Query):
+            obj.drop()
+
+    def _release(self, size: int) -> None:
+        with self._count_lock:
+            self._queued_bytes -= size
 
     def _work(self, q: queue.Queue) -> None:
         while True:
             item = q.get()
             if item is None:
                 return
-            handler, obj = item
+            handler, obj, size = item
             try:
                 handler(obj)
             except Exception as exc:  # a bug in a handler must not kill the worker: answer and go on
                 log.exception("replay handler failed")
                 self._reject(obj, "internal", f"{type(exc).__name__}: {exc}")
             finally:
+                self._release(size)
                 if isinstance(obj, zenoh.Query):
                     obj.drop()  # finalises the query, so the client's get ends without waiting its timeout
 
@@ -228,11 +267,7 @@ class ReplayServer:
 
     # ------------------------------------------------------------------------------------ handlers
     def _handle_insert(self, query: zenoh.Query) -> None:
-        data = _payload(query)
-        if len(data) > self.limits.max_insert_bytes:
-            self._reject(query, "oversized", f"transition is {len(data)} bytes; this server accepts at most "
-                         f"{self.limits.max_insert_bytes}")
-            return
+        data = _payload(query)  # its size was checked in the callback (_enqueue)
         try:
             msg = check_transition(data, self.limits.expected_shape, self.limits.max_insert_bytes,
                                    self.limits.decode_pixels)
@@ -313,6 +348,7 @@ class ReplayServer:
             "rejected": self.rejections.snapshot(),
             "rejected_total": self.rejections.total(),
             "queued": {name: q.qsize() for name, q in self._queues.items()},
+            "queued_bytes": self._queued_bytes,
             "uptime_s": round(time.monotonic() - self._started_s, 3),
         }
         return out
