@@ -46,6 +46,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         robot = args.robots.split(",")[-1].strip()
         result = run_pick_geometry_benchmark(hands=hands, cube_sizes_m=sizes, robot=robot, seed=args.seed)
         result["markdown"] = markdown(result)
+    elif args.what == "fuzz":
+        from romannet.bench.fuzz import FuzzPlan, run_fuzz
+
+        big = tuple(int(m) for m in args.big_mb.split(",") if m.strip())
+        result = run_fuzz(FuzzPlan(messages=args.messages, big_mb=big, seed=args.seed))
     elif args.what == "faults":
         from romannet.bench.faults import run_fault_scenario_checked
 
@@ -84,6 +89,14 @@ BENCHMARKS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
                       "Which picks of a lone cube each simulated hand holds, by offset from the cube's centre "
                       "and by angle.", "romannet bench pick-geometry --hands panda,rg2 --cube-sizes 0.05,0.04",
                       ("seed", "robots", "hands", "cube_sizes")),
+    "fuzz": ("2,000 malformed and 100 MB-1 GB messages at a replay server, and its memory",
+             "A real replay server over loopback Zenoh takes --messages bad messages (random bytes, flipped and "
+             "cut transitions, wrong keys, garbage requests, transitions just over replay.max_item_bytes and "
+             "--big-mb messages far over every limit); it prints the refusals by reason, the server's resident "
+             "memory before and at its peak (their ratio must stay <= 2), whether it still answers and holds "
+             "exactly its good items, and its exit code. About 30 s and 2 GB in this process for a 1 GB message. "
+             "Exit 1 if a check fails.", "romannet bench fuzz --json --messages 2000 --big-mb 100,250,500,1000",
+             ("seed", "messages", "big_mb")),
     "faults": ("a secure multi-host fleet through kill -9, a cut link and an intruder (root)",
                "A secure fleet on five Linux network-namespace hosts (a router; the replay server and the "
                "learner; two actors; an operator), with the configs `romannet deploy certs` writes: mutual TLS, "
@@ -108,7 +121,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
         q.add_argument("--json", action="store_true", help="print compact JSON on one line")
         # cmd_bench reads every field; a benchmark without the option gets its default.
         q.set_defaults(seed=0, repeats=None, inserts=2000, actions=10, robots="arm,gripper", hands="panda,rg2",
-                       cube_sizes="0.05,0.04", batch_sizes="1,4,8", device="cpu")
+                       cube_sizes="0.05,0.04", batch_sizes="1,4,8", device="cpu", messages=2000,
+                       big_mb="100,250,500,1000")
         if "seed" in options:
             q.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
         if "repeats" in options:
@@ -129,5 +143,10 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
             q.add_argument("--cube-sizes", default="0.05,0.04", help="comma-separated cube edges (m)")
         if "batch_sizes" in options:
             q.add_argument("--batch-sizes", default="1,4,8", help="comma-separated transitions per update")
+        if "messages" in options:
+            q.add_argument("--messages", type=int, default=2000, help="bad messages sent, the big ones included")
+        if "big_mb" in options:
+            q.add_argument("--big-mb", default="100,250,500,1000",
+                           help="comma-separated sizes (MB) of the messages far over every limit")
         if "device" in options:
             q.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (when there is a GPU)")
