@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
                 token = session.liveliness().declare_token(RunKeys(cfg.run_id).actor_alive(acfg.actor_id))
                 try:
                     client = ZenohReplayClient(session, cfg.run_id, expected_shape=(ws.height_px, ws.width_px),
-                                               actor_id=acfg.actor_id)
+                                               actor_id=acfg.actor_id, max_insert_bytes=cfg.replay.max_item_bytes)
                     with ZenohWeightsSource(session, cfg.run_id, fetch_timeout_s=acfg.weights_fetch_timeout_s,
                                             validate=lambda t: validate_tensors(engine.model, t)) as source:
                         log.info("actor %s ready (run %s, dir %s)", acfg.actor_id, cfg.run_id, run_dir)

@@ -78,12 +78,15 @@ class ZenohReplayClient:
     run_id selects the server (`romannet/@v1/<run_id>/replay/...`); expected_shape (h, w) in pixels, if
     given, is enforced on every sampled transition. actor_id: the actor this client inserts for (its
     transitions go to `.../replay/insert/<actor_id>`, the only insert key a secure router lets that actor
-    use); None reads it from each transition.
+    use); None reads it from each transition. max_insert_bytes: the server's replay.max_item_bytes; a larger
+    transition is refused here ("oversized"), not sent: beyond the server's Zenoh cap it would be dropped
+    unanswered and resent for ever.
     """
 
     def __init__(self, session: zenoh.Session, run_id: str, expected_shape: tuple[int, int] | None = None,
-                 actor_id: str | None = None):
+                 actor_id: str | None = None, max_insert_bytes: int | None = None):
         self._session = session
+        self._max_insert_bytes = max_insert_bytes
         self.keys = RunKeys(run_id)
         self._expected_shape = expected_shape
         self._insert_key = self.keys.replay_insert(actor_id) if actor_id is not None else None
@@ -104,8 +107,12 @@ class ZenohReplayClient:
     def insert_encoded(self, data: bytes, timeout_s: float = 10.0) -> InsertAckMsg:
         """insert() for a transition already encoded with wire.encode_transition (actors that also
         record MCAP encode once and reuse the bytes)."""
+        key = self._insert_key or self._insert_key_of(data)
+        if self._max_insert_bytes is not None and len(data) > self._max_insert_bytes:
+            raise RemoteError(key, "oversized", f"transition is {len(data)} bytes; the replay server accepts at "
+                              f"most {self._max_insert_bytes} (replay.max_item_bytes): not sent")
         try:
-            reply = query_one(self._session, self._insert_key or self._insert_key_of(data), data, timeout_s,
+            reply = query_one(self._session, key, data, timeout_s,
                               parameters=f"wait_ms={_wait_ms(timeout_s)}")
         except RemoteError as err:
             if err.reason == "rate_limited":

@@ -81,7 +81,8 @@ def run(args: argparse.Namespace) -> int:
 
     with stop_on_signals(stop, "finishing the current step, then checkpoint and exit"):
         with open_session(zenoh_config) as session:
-            client = TolerantReplayClient(session, config.run_id, expected_shape=(ws.height_px, ws.width_px))
+            client = TolerantReplayClient(session, config.run_id, expected_shape=(ws.height_px, ws.width_px),
+                                          max_insert_bytes=config.replay.max_item_bytes)
             if getattr(args, "offline", None):
                 prefill(client, args.offline, stop)
             options = ServiceOptions(max_updates=max(0, getattr(args, "max_updates", 0) or 0))

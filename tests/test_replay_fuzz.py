@@ -16,6 +16,7 @@ import zenoh
 
 from romannet.bench.fuzz import FuzzPlan, fuzz_transition, run_fuzz
 from romannet.common import wire
+from romannet.common.replay_client import ZenohReplayClient, refused_for_good
 from romannet.common.wire_messages import InsertAckMsg
 from romannet.common.zenoh_limits import (
     FLEET_MAX_MESSAGE_BYTES,
@@ -25,6 +26,7 @@ from romannet.common.zenoh_limits import (
     replay_receive_limit,
 )
 from romannet.common.zenoh_session import (
+    RemoteError,
     free_port,
     make_config,
     open_session,
@@ -112,4 +114,21 @@ def test_queued_bytes_are_bounded_and_an_oversized_insert_is_refused_before_queu
         assert next(iter(held)).ok is not None
         for replies in queued:  # taken once the worker was free, then refused as garbage
             assert parse_error(next(iter(replies)).err.payload.to_bytes())[0] == "undecodable"
+        deadline = time.monotonic() + 10  # a worker releases a message's bytes just after its reply
+        while server.stats()["server"]["queued_bytes"] and time.monotonic() < deadline:
+            time.sleep(0.02)
         assert server.stats()["server"]["queued_bytes"] == 0
+
+
+def test_a_client_does_not_send_a_transition_over_the_servers_item_limit() -> None:
+    """Over the server's Zenoh cap it would be dropped unanswered and resent for ever: refused here, with a
+    reason the actor's sender files under spool/rejected/ (refused_for_good)."""
+    data = wire.encode_transition(fuzz_transition(0))
+    with open_session(make_config(listen=[], connect=[f"tcp/127.0.0.1:{free_port()}"])) as session:
+        client = ZenohReplayClient(session, "lim", actor_id="fuzz-0", max_insert_bytes=len(data) - 1)
+        started = time.monotonic()
+        with pytest.raises(RemoteError) as err:
+            client.insert_encoded(data, timeout_s=30)
+    assert time.monotonic() - started < 1.0  # not sent: nothing waited for a reply
+    assert err.value.reason == "oversized" and refused_for_good(err.value.reason)
+    assert f"transition is {len(data)} bytes" in err.value.detail
