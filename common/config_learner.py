@@ -93,6 +93,10 @@ class LearnerConfig:
     # New weights after every update: VPG acts on the net it has just trained, and an actor that keeps its
     # weights for many actions repeats the action that has just failed (docs/results.md).
     publish_every_updates: int = 1
+    # dtype of the published weights (common/weights_wire.py): "bf16" halves them and is exact for actors that
+    # compute in bf16; "fp32" for a fleet with fp32 actors (CPUs without native bf16); "auto": bf16 when
+    # model.precision resolves to bf16 on the learner's machine.
+    weights_wire_dtype: Literal["auto", "fp32", "bf16"] = "auto"
     # Replay ratio: at most this many updates per newly inserted transition (the learner waits rather than
     # overfitting a small buffer); 0 = no cap.
     max_updates_per_insert: float = 4.0
@@ -137,6 +141,8 @@ class LearnerConfig:
         require(0 <= self.seed < 2**63, "learner.seed", self.seed, "must be a non-negative integer")
         require(self.checkpoint_every_updates >= 1, "learner.checkpoint_every_updates",
                 self.checkpoint_every_updates, "must be >= 1")
+        require(self.weights_wire_dtype in ("auto", "fp32", "bf16"), "learner.weights_wire_dtype",
+                self.weights_wire_dtype, "must be 'auto', 'fp32' or 'bf16' (bf16: for actors that compute in bf16)")
         require(self.keep_checkpoints >= 1, "learner.keep_checkpoints", self.keep_checkpoints, "must be >= 1")
         require(self.publish_every_updates >= 1, "learner.publish_every_updates", self.publish_every_updates,
                 "must be >= 1")

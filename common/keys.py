@@ -14,6 +14,7 @@ fails at start-up with a clear message instead of silently addressing the wrong 
 | .../replay/stats                      | queryable (get)       | (none) -> JSON object                    |
 | .../replay/alive                      | liveliness token      |                                          |
 | .../weights/announce                  | publisher (put)       | WeightsAnnouncement                      |
+| .../weights/data                      | publisher (put)       | Weights (each version, once)             |
 | .../weights/fetch                     | queryable (get)       | (version parameter) -> Weights           |
 | .../exploration                       | publisher (put)       | ExplorationRate                          |
 | .../actor/<actor_id>/alive            | liveliness token      |                                          |
@@ -95,6 +96,12 @@ class RunKeys:
     def weights_announce(self) -> str:
         """Publisher (learner): an encoded WeightsAnnouncement for each new weights version."""
         return f"{self.root}/weights/announce"
+
+    @property
+    def weights_data(self) -> str:
+        """Publisher (learner): the encoded Weights of each new version, put once for every actor (a
+        router fans it out), just before its announcement."""
+        return f"{self.root}/weights/data"
 
     @property
     def weights_fetch(self) -> str:

@@ -93,11 +93,17 @@ def fused_ops_available() -> bool:
     return all(hasattr(torch.ops.mkldnn, name) for name in _FUSED_OPS)
 
 
-def _fold(conv: torch.nn.Module, bn: torch.nn.BatchNorm2d, transposed: bool = False) -> tuple[Tensor, Tensor]:
-    """Weights and bias of conv followed by eval-mode BN as one conv (out channels: dim 0, or 1 if transposed)."""
+def _fold(conv: torch.nn.Module, bn: torch.nn.BatchNorm2d, transposed: bool = False,
+          weight_dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+    """Weights and bias of conv followed by eval-mode BN as one conv (out channels: dim 0, or 1 if transposed).
+
+    weight_dtype: the conv weight is rounded to it first. bf16 makes what the engine uses a function of the
+    bf16 weights alone, so weights sent in bf16 (common/weights_wire.py) give the same bits as fp32 ones.
+    """
     scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
     shape = (1, -1, 1, 1) if transposed else (-1, 1, 1, 1)
-    return conv.weight * scale.view(shape), (conv.bias - bn.running_mean) * scale + bn.bias
+    weight = conv.weight.to(weight_dtype).float()
+    return weight * scale.view(shape), (conv.bias - bn.running_mean) * scale + bn.bias
 
 
 class _Layer:
@@ -158,12 +164,13 @@ class FastNet:
                 w_hi = w1.to(dtype)
                 w1 = torch.cat([w_hi, w_hi, (w1 - w_hi.float()).to(dtype)], 1).float()
             self.layers = [_Layer(w1, b1, dtype, 1, 4, False, fused),
-                           _Layer(*_fold(net.conv2, net.bn2), dtype, 2, 1, False, fused),
-                           _Layer(*_fold(net.conv3, net.bn3), dtype, 2, 1, False, fused)]
-            self.res = [(_Layer(*_fold(b.conv1, b.bn1), dtype, 1, 1, False, fused),
-                         _Layer(*_fold(b.conv2, b.bn2), dtype, 1, 1, False, fused)) for b in net.res]
-            self.up = [_Layer(*_fold(net.deconv1, net.bn4, True), dtype, 2, 1, True, fused),
-                       _Layer(*_fold(net.deconv2, net.bn5, True), dtype, 2, 1, True, fused)]
+                           _Layer(*_fold(net.conv2, net.bn2, False, dtype), dtype, 2, 1, False, fused),
+                           _Layer(*_fold(net.conv3, net.bn3, False, dtype), dtype, 2, 1, False, fused)]
+            self.res = [(_Layer(*_fold(b.conv1, b.bn1, False, dtype), dtype, 1, 1, False, fused),
+                         _Layer(*_fold(b.conv2, b.bn2, False, dtype), dtype, 1, 1, False, fused))
+                        for b in net.res]
+            self.up = [_Layer(*_fold(net.deconv1, net.bn4, True, dtype), dtype, 2, 1, True, fused),
+                       _Layer(*_fold(net.deconv2, net.bn5, True, dtype), dtype, 2, 1, True, fused)]
             self.conv6 = _Layer(net.conv6.weight, net.conv6.bias, dtype, 1, 4, False, fused)
             heads_w = torch.cat([net.q_head.weight, net.rot_head.weight], 0)[:, :, 0, 0]
             self.heads_w = heads_w.detach().float().t().contiguous()  # (C, 1 + rotation channels)

@@ -1,16 +1,19 @@
-"""The learner's side of weights distribution: announce each version, serve it on query, publish rates.
+"""The learner's side of weights distribution: publish each version once, serve it on query, publish rates.
 
-    publisher = WeightsPublisher(session, run_id)     # declares the fetch queryable
-    publisher.publish_weights(version, tensors)       # encode once, keep, announce (version, sha256, size)
+    publisher = WeightsPublisher(session, run_id, wire_dtype="bf16")   # declares the fetch queryable
+    publisher.publish_weights(version, tensors)       # encode once, put the Weights, announce (version, sha256, size)
     publisher.publish_exploration(version, 0.31, "lae")
     publisher.close()                                 # before the session closes
 
 Only the learner publishes, and versions strictly increase (a smaller or equal version raises ValueError:
-actors ignore it anyway, so it can only be a bug). The Weights bytes are encoded once per version and kept;
-a query `.../weights/fetch?version=N` is answered with them whatever N is (N is the current version, or an
-older one the actor was late for, or absent: the latest is what the actor wants in every case; the
-message carries its own version). Queries are answered on a worker thread, because sending megabytes with
-CongestionControl.BLOCK inside a Zenoh callback would stall every other message of the session.
+actors ignore it anyway, so it can only be a bug). Each version is encoded once (wire_dtype: see
+common/weights_wire.py) and put once on `.../weights/data`: Zenoh delivers it to every subscribed actor, and
+through a router the learner's link carries one copy whatever the number of actors. The small announcement
+follows on the same link, so an actor that got the announcement without the data (it joined mid-way, or
+was cut off) fetches the newest with a query `.../weights/fetch?version=N`, answered with the kept bytes
+whatever N is (the message carries its own version). An actor that starts after the learner fetches the
+same way. Queries are answered on a worker thread, because sending megabytes with CongestionControl.BLOCK
+inside a Zenoh callback would stall every other message of the session.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import zenoh
 
 from romannet.common import wire
 from romannet.common.keys import RunKeys
+from romannet.common.weights_wire import to_wire
 from romannet.common.weightscodec import make_weights
 from romannet.common.wire_messages import ExplorationRateMsg, WeightsAnnouncementMsg
 from romannet.common.zenoh_session import format_error
@@ -39,14 +43,19 @@ _MAX_PENDING_QUERIES = 64  # more waiting fetches than this are refused at once 
 class WeightsPublisher:
     """Serves versioned weights and exploration rates of run_id through `session` (the caller's)."""
 
-    def __init__(self, session: zenoh.Session, run_id: str):
+    def __init__(self, session: zenoh.Session, run_id: str, wire_dtype: str = "fp32", push: bool = True):
+        """wire_dtype: "fp32" or "bf16" (common/weights_wire.py). push=False only announces, so every actor
+        fetches its own copy (the protocol before the put; kept for the benchmark's comparison)."""
+        to_wire({}, wire_dtype)  # a bad dtype fails here, not at the first publish
         self.keys = RunKeys(run_id)
+        self.wire_dtype, self.push = wire_dtype, push
         self._session = session
         self._lock = threading.Lock()
         self._encoded: bytes | None = None  # the encoded Weights message of the current version
         self._announcement: WeightsAnnouncementMsg | None = None
         self._rate_version = -1
         self.served = 0  # fetch queries answered with weights
+        self.pushed = 0  # versions put on weights/data
         self._queries: queue.Queue = queue.Queue(maxsize=_MAX_PENDING_QUERIES)
         self._worker = threading.Thread(target=self._serve, name="weights-serve", daemon=True)
         self._worker.start()
@@ -65,11 +74,15 @@ class WeightsPublisher:
         if current is not None and version <= current:
             raise ValueError(f"weights version {version} is not newer than the published {current}: "
                              "versions must strictly increase")
-        weights, announcement = make_weights(version, tensors)
+        weights, announcement = make_weights(version, to_wire(tensors, self.wire_dtype))
         encoded = wire.encode_weights(weights)
         with self._lock:
             self._encoded, self._announcement = encoded, announcement
-        # Announce after the bytes are in place, so an actor that reacts at once finds them.
+        if self.push:
+            self._session.put(self.keys.weights_data, encoded, congestion_control=zenoh.CongestionControl.BLOCK)
+            self.pushed += 1
+        # Announce after the bytes are in place, so an actor that reacts at once finds them; on the same
+        # link and priority it arrives after the data, so an actor that has the data does not fetch.
         self._session.put(self.keys.weights_announce, wire.encode_weights_announcement(announcement),
                           congestion_control=zenoh.CongestionControl.BLOCK)
         log.debug("published weights v%d (%d bytes)", version, announcement.size_bytes)

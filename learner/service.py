@@ -41,6 +41,7 @@ from romannet.common.errors import DecodeError
 from romannet.common.interfaces import ReplayClient
 from romannet.common.keys import RunKeys
 from romannet.common.model import preprocess
+from romannet.common.weights_wire import resolve_wire_dtype
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 from romannet.common.zenoh_session import ZenohQueryError
 
@@ -112,7 +113,9 @@ def run_learner(cfg: Config, run_dir: str | Path, replay_client: ReplayClient, s
     if resumed_from is not None:
         counters.checkpointed_at = trainer.updates
     metrics = LearnerMetrics(run_dir, opts.image_every_updates, opts.plot_every_s)
-    publisher = WeightsPublisher(session, cfg.run_id)
+    wire_dtype = resolve_wire_dtype(lcfg.weights_wire_dtype, cfg.model.precision)
+    publisher = WeightsPublisher(session, cfg.run_id, wire_dtype)
+    log.info("weights go out in %s (learner.weights_wire_dtype = %s)", wire_dtype, lcfg.weights_wire_dtype)
     token = None
     try:
         # Weights first, then the token: an actor that reacts to the token fetches and finds them.
