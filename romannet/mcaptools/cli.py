@@ -93,10 +93,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--json", action="store_true", help="print one JSON object")
     _feed_args(t)
 
-    t = tool("export", "a video or PNG frames for people: camera image, heightmap with the Q map, the action, "
-             "reward and success")
+    t = tool("export", "a video or PNG frames for people: camera image, heightmaps (one with the Q map, one "
+             "with its depth colour bar) seen from above with the action, reward and success")
     t.add_argument("file", metavar="FILE")
-    t.add_argument("--video", metavar="OUT.mp4", help="write an mp4 (OpenCV mp4v), one frame per step")
+    t.add_argument("--video", metavar="OUT.mp4", help="write an H.264 mp4 (PyAV, plays in browsers), one frame per step")
     t.add_argument("--frames", metavar="DIR", help="write one PNG per step (step_00000.png, ...)")
     t.add_argument("--fps", type=float, default=2.0, help="video frames (steps) per second (default: 2)")
     t.add_argument("--size", type=int, default=448, metavar="PX", help="height of the image panels (default: 448)")

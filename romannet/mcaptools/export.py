@@ -1,10 +1,11 @@
 """`romannet mcap export FILE --video OUT.mp4 | --frames DIR`: one frame per recorded step, for people.
 
 Each frame (romannet/mcaptools/render.py): the camera image before the action, the colour heightmap before
-it with the executed net's Q map over it and the action drawn, and text: step, primitive, pixel, angle,
+it with the executed net's Q map over it, the depth heightmap, the action drawn on both, and text: step, primitive, pixel, angle,
 Q value, explored or greedy, success or failure (with the robot's reason), reward, progress before and
 after, weights version, exploration rate, and the end reason on the last step. Lengths drawn come from
-the config recorded in the file (push distance, heightmap resolution).
+the config recorded in the file (push distance, the hand's opening, heightmap resolution). The video is
+H.264 in an mp4 (romannet/mcaptools/video.py), which browsers play.
 """
 
 from __future__ import annotations
@@ -33,24 +34,17 @@ from romannet.common.episode_file import (
     EpisodeReader,
 )
 from romannet.common.errors import RomannetError
+from romannet.common.heightmap import look_at
 from romannet.common.imagecodec import decode_color_png, decode_depth_png, units_to_depth_m
+from romannet.common.pictures import TEXT_BGR, ActionGlyph, camera_turns
 
 from .bar import ProgressBar
-from .render import (
-    FAIL_BGR,
-    OK_BGR,
-    TEXT_BGR,
-    StepView,
-    compose,
-    decode_compressed,
-    decode_raw16,
-    depth_colormap,
-)
+from .render import FAIL_BGR, OK_BGR, StepView, compose, decode_compressed, decode_raw16
 from .steps import RecordedStep, group_steps, parse_transition, primitive_of
+from .video import VideoFile
 
 log = logging.getLogger(__name__)
 
-GRIPPER_OPENING_M = 0.08  # the Panda hand's full opening, drawn as the gripper bar
 _TOPICS = (CAMERA_COLOR_TOPIC, HEIGHTMAP_COLOR_TOPIC, HEIGHTMAP_DEPTH_TOPIC, TRANSITION_TOPIC, STEP_TOPIC,
            *(f"{Q_TOPIC_PREFIX}{p}" for p in ("push", "pick", "place")))
 
@@ -66,16 +60,20 @@ def recorded_config(reader: EpisodeReader) -> Config | None:
 
 @dataclass(frozen=True)
 class Geometry:
-    """Lengths drawn, in heightmap pixels."""
+    """Lengths drawn, in heightmap pixels, and the camera image's quarter turns to the heightmaps' view."""
 
     push_length_px: float
     gripper_width_px: float
+    camera_turns: int
 
     @classmethod
     def of(cls, cfg: Config | None) -> Geometry:
+        """From the recorded config: the push distance, the hand's full opening (both fingers' travel) and
+        the simulated camera's pose (a real camera's pose is not in the config: drawn as the sim's)."""
         cfg = cfg or Config()
-        res = cfg.workspace.resolution_m
-        return cls(cfg.sim.push_distance_m / res, GRIPPER_OPENING_M / res)
+        res, sim = cfg.workspace.resolution_m, cfg.sim
+        pose = look_at(np.array(sim.camera_eye_m), np.array(sim.camera_target_m), np.array(sim.camera_up))
+        return cls(sim.push_distance_m / res, 2 * sim.finger_travel_m / res, camera_turns(pose))
 
 
 def _text_lines(step: RecordedStep, t, episode_id: str) -> tuple[tuple[str, tuple[int, int, int]], ...]:
@@ -97,6 +95,13 @@ def _text_lines(step: RecordedStep, t, episode_id: str) -> tuple[tuple[str, tupl
     return ((first, TEXT_BGR), (second, OK_BGR if t.success else FAIL_BGR), (third, TEXT_BGR))
 
 
+def _q_range(record: dict, primitive: str) -> tuple[float, float] | None:
+    q_range = (record.get("q_ranges") or {}).get(primitive)
+    if isinstance(q_range, list | tuple) and len(q_range) == 2 and float(q_range[1]) > float(q_range[0]):
+        return float(q_range[0]), float(q_range[1])
+    return None
+
+
 def step_view(step: RecordedStep, episode_id: str, geometry: Geometry) -> StepView:
     """The StepView of a recorded step (images from the recorded observation before the action)."""
     t = parse_transition(step.transition.data)
@@ -105,35 +110,33 @@ def step_view(step: RecordedStep, episode_id: str, geometry: Geometry) -> StepVi
         heightmap = decode_compressed(before[HEIGHTMAP_COLOR_TOPIC].data)
     else:
         heightmap = cv2.cvtColor(decode_color_png(t.color_before_png), cv2.COLOR_RGB2BGR)
-    if CAMERA_COLOR_TOPIC in before:
-        left = decode_compressed(before[CAMERA_COLOR_TOPIC].data)
-    elif HEIGHTMAP_DEPTH_TOPIC in before:
-        left = depth_colormap(units_to_depth_m(decode_raw16(before[HEIGHTMAP_DEPTH_TOPIC].data)))
+    if HEIGHTMAP_DEPTH_TOPIC in before:
+        depth = units_to_depth_m(decode_raw16(before[HEIGHTMAP_DEPTH_TOPIC].data))
     else:
-        left = depth_colormap(decode_depth_png(t.depth_before_png))
+        depth = decode_depth_png(t.depth_before_png)
+    camera = decode_compressed(before[CAMERA_COLOR_TOPIC].data) if CAMERA_COLOR_TOPIC in before else None
     primitive = primitive_of(t)
     q = decode_compressed(step.q_maps[primitive].data) if primitive in step.q_maps else None
-    return StepView(heightmap, left, q, primitive, int(t.action.row), int(t.action.col), float(t.action.angle_rad),
-                    geometry.push_length_px, geometry.gripper_width_px, _text_lines(step, t, episode_id))
+    glyph = ActionGlyph(primitive, int(t.action.row), int(t.action.col), float(t.action.angle_rad),
+                        geometry.push_length_px, geometry.gripper_width_px)
+    return StepView(heightmap, depth, camera, geometry.camera_turns, q, _q_range(step.record or {}, primitive),
+                    glyph, _text_lines(step, t, episode_id))
 
 
 class FrameSink:
-    """Writes frames to an mp4 (cv2.VideoWriter, mp4v) and/or numbered PNGs; opened on the first frame."""
+    """Writes frames to an H.264 mp4 (PyAV's libx264, yuv420p: what browsers play) and/or numbered PNGs;
+    the video opens on the first frame, whose size every later frame is fitted to."""
 
     def __init__(self, video: Path | None, frames_dir: Path | None, fps: float):
         self.video_path, self.frames_dir, self.fps = video, frames_dir, fps
-        self._writer: cv2.VideoWriter | None = None
+        self._video: VideoFile | None = None
         self.count = 0
 
     def write(self, frame: np.ndarray) -> None:
         if self.video_path is not None:
-            if self._writer is None:
-                self.video_path.parent.mkdir(parents=True, exist_ok=True)
-                self._writer = cv2.VideoWriter(str(self.video_path), cv2.VideoWriter_fourcc(*"mp4v"), self.fps,
-                                               (frame.shape[1], frame.shape[0]))
-                if not self._writer.isOpened():
-                    raise RomannetError(f"cannot write {self.video_path} with OpenCV's mp4v encoder")
-            self._writer.write(frame)
+            if self._video is None:
+                self._video = VideoFile(self.video_path, self.fps, frame.shape[1], frame.shape[0])
+            self._video.write(frame)
         if self.frames_dir is not None:
             self.frames_dir.mkdir(parents=True, exist_ok=True)
             out = self.frames_dir / f"step_{self.count:05d}.png"
@@ -142,8 +145,8 @@ class FrameSink:
         self.count += 1
 
     def close(self) -> None:
-        if self._writer is not None:
-            self._writer.release()
+        if self._video is not None:
+            self._video.close()
 
 
 def export_episode(path: str | Path, sink: FrameSink, panel_px: int = 448,
