@@ -1,7 +1,7 @@
 """The replay server: a ReplayStore served over Zenoh (keys in common/keys.py).
 
 Threads: Zenoh calls our callbacks on its own threads, and a callback that blocks (an fsync, a sample
-waiting for the rate limiter) stalls every other message of the session. So callbacks only copy the
+waiting for the rate limiter) stalls every other message of the session. So callbacks only check the
 payload's size and enqueue; three small worker pools do the work:
 - insert workers: validate the transition (its PNGs decoded in full), `store.insert` (durable), reply
   with the ack;
@@ -72,8 +72,8 @@ class ServerLimits:
     sample_workers: int = 2
     max_pending: int = 256
     max_insert_bytes: int = 16 * 1024 * 1024
-    # Bytes of queued messages; a message that would pass it waits unless the queue is empty (so one
-    # large valid transition is always taken). Bounds memory under a flood of large inserts.
+    # Bytes of queued messages: a message that would pass it is answered "overloaded" (clients resend)
+    # unless nothing is queued, so one large valid transition is always taken. Bounds memory under a flood.
     max_queued_bytes: int = 64 * 1024 * 1024
     # Any other message (priority updates, sample and stats requests); common/wire.py reads 4 MiB at most.
     max_control_bytes: int = PRIORITY_UPDATE_BYTES
