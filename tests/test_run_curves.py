@@ -125,3 +125,25 @@ def test_plot_verb_draws_one_run_and_refuses_a_non_run(tmp_path: Path) -> None:
     proc = subprocess.run([*romannet, str(tmp_path), "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "no config.toml" in proc.stderr
+
+
+def test_live_report_redraws_while_running_and_ends_with_every_episode(tmp_path: Path, caplog) -> None:
+    """The launcher's thread: redrawn while episodes arrive, a broken file a warning, all of it at close."""
+    import time
+
+    from romannet.evaluate.run_report import LiveRunReport
+
+    run_dir = make_run(tmp_path)
+    live = LiveRunReport(run_dir, window=4, every_s=0.05)
+    deadline = time.monotonic() + 60
+    while not (run_dir / PNG_NAME).exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert (run_dir / PNG_NAME).exists()
+    (run_dir / "episodes" / "a1" / "junk.mcap").write_bytes(b"not an episode")
+    record(run_dir, "a1", "ep1", [(8, True, 0.25), (9, False, 0.0), (11, True, 1.0)], "done")  # a1 finishes
+    live.close()
+    acc = EventAccumulator(str(run_dir.joinpath(*BOARD_DIR)))
+    acc.Reload()
+    assert [e.step for e in acc.Scalars("episodes/return")] == [3, 5, 7, 10]
+    assert acc.Scalars("episodes/return")[-1].value == pytest.approx(1.25)
+    assert "junk.mcap skipped" in caplog.text
