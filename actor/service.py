@@ -39,6 +39,7 @@ from romannet.common.action import Action, pixel_to_position
 from romannet.common.config import Config
 from romannet.common.config_actor import ActorConfig
 from romannet.common.configbase import dumps_toml
+from romannet.common.episode_rules import ideal_actions
 from romannet.common.errors import RobotError, RomannetError
 from romannet.common.exploration import NonFiniteQError
 from romannet.common.interfaces import Env, Observation, ReplayClient, StepResult, WeightsSource
@@ -49,7 +50,7 @@ from romannet.common.wire import TransitionMsg, encode_transition
 from .recorder import EpisodeRecorder
 from .sender import Sender, spool_pause
 from .spool import Spool
-from .stats import ActorStats, ideal_actions, write_status
+from .stats import ActorStats, write_status
 
 log = logging.getLogger(__name__)
 

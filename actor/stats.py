@@ -8,8 +8,8 @@ a file. Fields (counts are of this process's life unless noted):
     actions, episodes (finished, any reason), episode_id, episode_step (actions in the current episode)
     picks, successful_picks, pick_success_rate (null before the first pick)
     completed_episodes (done_reason "done"), completion_rate (of finished episodes)
-    efficiency_last, efficiency_mean (ideal / actual actions over completed episodes; ideal = successful
-      picks for clutter / arrangements, 2 (h - 1) for stacking to height h, as in the paper)
+    efficiency_last, efficiency_mean (ideal / actual actions over completed episodes; ideal:
+      common.episode_rules.ideal_actions, the objects counted as the episode's successful picks)
     weights_version (in use), initial_weights (true until the learner's first weights arrive),
     weights_versions_used (distinct versions stamped on transitions), weights_versions_recent (<= 16)
     explore_rate (in use), explore_rate_received (false while cfg.exploration.initial_rate is used)
@@ -32,14 +32,6 @@ from typing import Any
 from romannet.common.fsutil import write_json_atomic
 
 _RECENT_VERSIONS = 16
-
-
-def ideal_actions(task: str, successful_picks: int, goal_stack_height: int) -> int:
-    """The paper's ideal action count of a completed episode: #objects (clutter, arrangement: each object
-    picked once, i.e. the successful picks) or 2 (h - 1) for stacking to height h."""
-    if task == "stacking":
-        return 2 * (goal_stack_height - 1)
-    return successful_picks
 
 
 @dataclass

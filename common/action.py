@@ -55,21 +55,6 @@ def position_to_pixel(x_m: float, y_m: float, ws: WorkspaceConfig) -> tuple[int,
     return row, col
 
 
-def refusal(action: Action, primitives: tuple[str, ...], holding: bool, shape_hw: tuple[int, int]) -> str:
-    """Why an environment cannot attempt `action` at all ("" if it can): a primitive the task does not use,
-    a place with an empty hand, a push or pick while holding, a pixel outside the (rows, cols) heightmap.
-    The simulator and a real robot apply the same rules."""
-    if action.primitive not in primitives:
-        return "primitive_not_allowed"
-    if action.primitive == "place" and not holding:
-        return "not_holding"
-    if action.primitive != "place" and holding:
-        return "holding_object"
-    if not (0 <= action.row < shape_hw[0] and 0 <= action.col < shape_hw[1]):
-        return "out_of_workspace"
-    return ""
-
-
 def patch_max(depth_hm: np.ndarray, row: int, col: int, radius_m: float, resolution_m: float) -> float:
     """Highest depth_hm value (m above the floor) within radius_m of pixel (row, col): where a push starts
     above, or a held object is lowered onto."""

@@ -1,9 +1,9 @@
 """Re-scoring a recorded step from its depth heightmaps: X, P and R_tp under another reward configuration.
 
-Pure functions (`romannet mcap rescore` applies them to episode files). P is computed exactly as the
-simulator computes it (common.reward on the depth heightmap: clutter and arrangement by the occupied
+Pure functions (`romannet mcap rescore` applies them to episode files). P and R_tp follow the episode
+rules the simulator and a real robot apply (common.episode_rules: clutter and arrangement by the occupied
 footprint relative to the episode's first heightmap, stacking by the stack height in cubes over the goal),
-so with the recorded configuration it reproduces the recorded P. X is judged per primitive from the two
+so with the recorded configuration they reproduce the recorded P. X is judged per primitive from the two
 depth heightmaps, or taken as recorded:
 
 * push: at least `push_min_area_m2` of the workspace changed height by more than `changed_height_m` (an
@@ -17,7 +17,7 @@ depth heightmaps, or taken as recorded:
 `source` picks: "auto" (default) push and place from the heightmaps, pick as the robot recorded it (its
 finger gap after closing); "heightmap" all three from the heightmaps; "recorded" all as recorded.
 
-R_tp = W(primitive) * X * P_after, 0 when progress reversed (common.reward.task_progress_reward). The
+R_tp = W(primitive) * X * P_after, 0 when progress reversed (common.episode_rules.step_reward). The
 Gaussian of TPG is applied by the learner when it builds labels, from its own [reward] section.
 """
 
@@ -31,7 +31,7 @@ import numpy as np
 
 from .config import RewardConfig, TaskConfig
 from .configbase import require
-from .reward import clutter_progress, progress_reversed, stacking_progress, task_progress_reward
+from .episode_rules import occupied_pixels, step_reward, task_progress
 from .stack import stack_height
 
 
@@ -81,11 +81,6 @@ def changed_pixels(depth_before: np.ndarray, depth_after: np.ndarray, changed_he
     return int(np.count_nonzero(np.abs(_finite(depth_after) - _finite(depth_before)) > changed_height_m))
 
 
-def occupied_pixels(depth_hm: np.ndarray, occupied_height_m: float) -> int:
-    """Pixels higher than occupied_height_m above the floor."""
-    return int(np.count_nonzero(_finite(depth_hm) > occupied_height_m))
-
-
 def heightmap_success(primitive: str, depth_before: np.ndarray, depth_after: np.ndarray, rule: SuccessRule,
                       resolution_m: float, occupied_height_m: float, cube_size_m: float) -> bool:
     """X judged from the depth heightmaps before and after the action (see the module docstring)."""
@@ -95,16 +90,9 @@ def heightmap_success(primitive: str, depth_before: np.ndarray, depth_after: np.
     if primitive == "pick":
         removed = occupied_pixels(depth_before, occupied_height_m) - occupied_pixels(depth_after, occupied_height_m)
         return removed >= area_pixels(rule.pick_min_area_m2, resolution_m)
-    if primitive == "place":
+    if primitive == "place":  # the stack grew: the rule every environment applies (episode_rules.judge_step)
         return stack_height(depth_after, cube_size_m) > stack_height(depth_before, cube_size_m)
     raise ValueError(f"primitive = {primitive!r} must be push, pick or place")
-
-
-def task_progress(depth_hm: np.ndarray, depth_start: np.ndarray, task: TaskConfig, reward: RewardConfig) -> float:
-    """P in [0, 1] as the simulator measures it (stacking: stack height / goal; otherwise the footprint)."""
-    if task.kind == "stacking":
-        return stacking_progress(stack_height(depth_hm, task.cube_size_m), task.goal_stack_height)
-    return clutter_progress(depth_hm, depth_start, reward.occupied_height_m)
 
 
 def rescore_step(primitive: str, recorded_success: bool, depth_before: np.ndarray, depth_after: np.ndarray,
@@ -118,5 +106,4 @@ def rescore_step(primitive: str, recorded_success: bool, depth_before: np.ndarra
         success = bool(recorded_success)
     p_before = task_progress(depth_before, depth_start, task, reward)
     p_after = task_progress(depth_after, depth_start, task, reward)
-    reversed_ = progress_reversed(p_before, p_after, reward.progress_tolerance)
-    return Score(success, p_before, p_after, task_progress_reward(primitive, success, p_after, reward, reversed_))
+    return Score(success, p_before, p_after, step_reward(primitive, success, p_before, p_after, reward))

@@ -2,6 +2,7 @@
 
     R_tp  = W(phi) * X * P            X: primitive succeeded (bool, judged by the sim/robot)
                                       P: overall task progress in [0, 1], measured on the depth heightmap
+                                         (common.episode_rules: clutter_progress, stacking_progress)
     R_tpg = max(R_tp, R_tp (*) G)     G: anisotropic Gaussian, sigma_x / sigma_y = 2, x along the gripper
 
 Frames and the angle convention (the same as `common.action`): a heightmap is indexed [row, col]; the column
@@ -30,55 +31,7 @@ logger = logging.getLogger(__name__)
 Normalization = Literal["peak", "paper"]
 
 
-# ----------------------------------------------------------------------------------------- task progress
-def _occupied_fraction(depth_hm: np.ndarray, occupied_height_m: float) -> float:
-    """Fraction of heightmap pixels higher than `occupied_height_m` (metres above the floor).
-
-    Kept local so the reward does not depend on common.stack; it matches common.stack.occupied_fraction.
-    Non-finite depth (missing readings on a real camera) counts as empty, never as occupied.
-    """
-    depth = np.asarray(depth_hm)
-    if depth.ndim != 2 or depth.size == 0:
-        raise ValueError(f"depth heightmap must be a non-empty 2-D array, got shape {depth.shape}")
-    return float(np.count_nonzero(np.isfinite(depth) & (depth > occupied_height_m))) / depth.size
-
-
-def clutter_progress(depth_hm_now: np.ndarray, depth_hm_start: np.ndarray, occupied_height_m: float) -> float:
-    """Clutter-removal progress P in [0, 1]: 1 - occupied_now / occupied_start.
-
-    The paper's "ratio of occupied pixels" read as the fraction of the episode's initial clutter footprint that
-    is gone: 0 at the start, 1 when the bin is empty. Clipped to [0, 1] (spreading objects can raise the
-    footprint above the start's); an episode that starts with nothing occupied is already done (P = 1).
-
-    Args:
-        depth_hm_now: depth heightmap after the action (metres above the workspace floor), shape (h, w).
-        depth_hm_start: depth heightmap at the start of the episode, same shape.
-        occupied_height_m: a pixel higher than this is occupied (RewardConfig.occupied_height_m).
-    """
-    if np.shape(depth_hm_now) != np.shape(depth_hm_start):
-        raise ValueError(f"heightmap shapes differ: now {np.shape(depth_hm_now)}, start {np.shape(depth_hm_start)}")
-    if not (math.isfinite(occupied_height_m) and occupied_height_m > 0):
-        raise ValueError(f"occupied_height_m = {occupied_height_m!r} must be a positive number of metres")
-    occupied_start = _occupied_fraction(depth_hm_start, occupied_height_m)
-    if occupied_start == 0.0:
-        return 1.0
-    occupied_now = _occupied_fraction(depth_hm_now, occupied_height_m)
-    return float(np.clip(1.0 - occupied_now / occupied_start, 0.0, 1.0))
-
-
-def stacking_progress(stack_height: float, goal_height: float) -> float:
-    """Stacking progress P = stack_height / goal_height, clipped to [0, 1].
-
-    Both in the same unit: cube counts (common.stack.stack_height and TaskConfig.goal_stack_height) or
-    metres. A non-finite height (a failed measurement) raises rather than silently rewarding.
-    """
-    if not math.isfinite(stack_height):
-        raise ValueError(f"stack_height = {stack_height!r} must be finite")
-    if not (math.isfinite(goal_height) and goal_height > 0):
-        raise ValueError(f"goal_height = {goal_height!r} must be a positive finite number")
-    return float(min(max(stack_height / goal_height, 0.0), 1.0))
-
-
+# ---------------------------------------------------------------------------------------------- R_tp
 def progress_reversed(p_before: float, p_after: float, tolerance: float) -> bool:
     """True when progress dropped by more than `tolerance` (RewardConfig.progress_tolerance): reward 0.
 
@@ -97,7 +50,7 @@ def task_progress_reward(primitive: str, X: bool, P: float, cfg: RewardConfig, r
     Args:
         primitive: "push" | "pick" | "place" (selects W: cfg.push_weight, pick_weight, place_weight).
         X: sub-task indicator from the sim/robot (push moved an object, pick lifted one, place raised the stack).
-        P: task progress in [0, 1] after the action (clutter_progress / stacking_progress).
+        P: task progress in [0, 1] after the action (common.episode_rules.task_progress).
         reversed: progress_reversed(P_before, P_after, cfg.progress_tolerance).
     """
     if primitive not in PRIMITIVES:

@@ -1,6 +1,6 @@
-"""Task measurements read off a depth heightmap: stack height (stacking) and occupied share (clutter).
+"""The stack height read off a depth heightmap (stacking; the rules that use it are common.episode_rules).
 
-Both take `depth_hm`, float32 h x w in metres above the workspace floor (common.heightmap.get_heightmaps).
+It takes `depth_hm`, float32 h x w in metres above the workspace floor (common.heightmap.get_heightmaps).
 """
 
 from __future__ import annotations
@@ -35,8 +35,3 @@ def stack_height(depth_hm: np.ndarray, cube_size_m: float = 0.05, median_ksize: 
     filtered = cv2.medianBlur(_as_heightmap(depth_hm), median_ksize)
     return max(0, int(np.rint(float(filtered.max()) / cube_size_m)))
 
-
-def occupied_fraction(depth_hm: np.ndarray, threshold_m: float) -> float:
-    """Share in [0, 1] of heightmap pixels higher than threshold_m (metres above the floor)."""
-    hm = _as_heightmap(depth_hm)
-    return float(np.count_nonzero(hm > threshold_m)) / hm.size

@@ -3,7 +3,7 @@
 A scripted clutter episode on 32x32 heightmaps (resolution 0.014 m): blocks 3 cm high on an empty floor.
 Step i is, in turn, a successful pick (the block leaves the scene), a successful push (a block moves) and
 a failed pick (nothing changes). X is the script's ground truth; P and R_tp are computed with
-common.reward exactly as the simulator does (actor/sim/env.py), so the recorded values are what an actor
+common.episode_rules exactly as the simulator does (actor/sim/env.py), so the recorded values are what an actor
 would have recorded for this scene.
 """
 
@@ -18,8 +18,9 @@ from romannet.actor.recorder import EpisodeRecorder
 from romannet.common.action import Action
 from romannet.common.config import Config, load_config
 from romannet.common.configbase import dumps_toml
+from romannet.common.episode_rules import clutter_progress
 from romannet.common.interfaces import Observation
-from romannet.common.reward import clutter_progress, progress_reversed, task_progress_reward
+from romannet.common.reward import progress_reversed, task_progress_reward
 from romannet.common.wire import TransitionMsg, encode_transition
 
 SIDE_PX = 32
@@ -128,7 +129,7 @@ STACK_SCRIPT = [("pick", 0, False, True),  # a lone cube lifted
 
 def record_stacking_episode(path: Path, run_id: str = "stack-test") -> None:
     """Record STACK_SCRIPT with the real recorder, as a stacking actor would."""
-    from romannet.common.reward import stacking_progress
+    from romannet.common.episode_rules import stacking_progress
     from romannet.common.stack import stack_height
 
     cfg = load_config(None, [*OVERRIDES, f'run_id="{run_id}"', 'task.kind="stacking"', "task.goal_stack_height=4"])

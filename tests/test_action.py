@@ -50,18 +50,6 @@ def test_action_validates():
         Action("pick", 0, 0, float("nan"), 0.0)
 
 
-def test_refusal_rules_shared_by_the_simulator_and_real_robots():
-    from romannet.common.action import Action, refusal
-
-    prims = ("push", "pick")
-    assert refusal(Action("pick", 3, 4, 0.0, 0.0), prims, False, (8, 8)) == ""
-    assert refusal(Action("place", 3, 4, 0.0, 0.0), prims, True, (8, 8)) == "primitive_not_allowed"
-    assert refusal(Action("place", 3, 4, 0.0, 0.0), ("pick", "place"), False, (8, 8)) == "not_holding"
-    assert refusal(Action("pick", 3, 4, 0.0, 0.0), prims, True, (8, 8)) == "holding_object"
-    assert refusal(Action("pick", 8, 0, 0.0, 0.0), prims, False, (8, 8)) == "out_of_workspace"
-    assert refusal(Action("pick", 0, -1, 0.0, 0.0), prims, False, (8, 8)) == "out_of_workspace"
-
-
 def test_patch_max_takes_the_highest_point_around_the_pixel_clipped_at_the_edges():
     import numpy as np
 

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from romannet.common.episode_rules import ideal_actions
 from romannet.evaluate.curves import TrainingAction, group_by_label, mean_curve, windowed
 from romannet.evaluate.metrics import (
     RunLog,
@@ -18,7 +19,6 @@ from romannet.evaluate.metrics import (
     cases_solved_in_all_runs,
     completed,
     failure_streak_at,
-    ideal_actions,
     pick_success_rate,
     summarize,
 )
@@ -33,18 +33,6 @@ def steps(text: str) -> tuple[StepLog, ...]:
 
 def run(text: str, end: str = "done", ideal: int = 3, case: str = "c") -> RunLog:
     return RunLog(case, 0, ideal, end, steps(text))
-
-
-def test_ideal_actions_are_objects_for_removal_and_two_per_added_cube_for_stacking():
-    assert ideal_actions("clutter", 30, 4) == 30
-    assert ideal_actions("arrangement", 6, 4) == 6
-    assert [ideal_actions("stacking", 0, h) for h in (2, 3, 4, 5)] == [2, 4, 6, 8]
-    with pytest.raises(ValueError, match="at least 2"):
-        ideal_actions("stacking", 10, 1)
-    with pytest.raises(ValueError, match="nothing to remove"):
-        ideal_actions("clutter", 0, 4)
-    with pytest.raises(ValueError, match="unknown task"):
-        ideal_actions("sorting", 3, 4)
 
 
 def test_ten_consecutive_failures_rule_counts_only_unbroken_streaks():

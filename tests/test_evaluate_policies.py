@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from romannet.cli import main
-from romannet.common.action import refusal
 from romannet.common.config import load_config
 from romannet.common.configbase import write_toml
+from romannet.common.episode_rules import refusal
 from romannet.common.exploration import ANGLE_RANGE_RAD
 from romannet.evaluate.policies import random_action
 from romannet.learner.checkpoint import save_checkpoint

@@ -18,7 +18,7 @@ from romannet.common.heightmap import (
     vertical_fov_deg,
     zbuffer_to_depth,
 )
-from romannet.common.stack import occupied_fraction, stack_height
+from romannet.common.stack import stack_height
 
 WS = WorkspaceConfig()
 CAM = CameraConfig()
@@ -334,11 +334,3 @@ def test_stack_height_empty_and_spike():
     with pytest.raises(ValueError):
         stack_height(hm, median_ksize=7)
 
-
-def test_occupied_fraction():
-    hm = np.zeros((224, 224), np.float32)
-    assert occupied_fraction(hm, 0.01) == 0.0
-    hm[:56, :] = 0.02  # a quarter of the rows
-    hm[100, 100] = 0.005  # below the threshold
-    assert occupied_fraction(hm, 0.01) == pytest.approx(0.25)
-    assert occupied_fraction(np.full((4, 4), 0.3, np.float32), 0.01) == 1.0

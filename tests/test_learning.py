@@ -21,8 +21,9 @@ from romannet.common.action import Action
 from romannet.common.config import ExplorationConfig, ModelConfig, RewardConfig, TaskConfig
 from romannet.common.config_learner import LearnerConfig
 from romannet.common.config_replay import ReplayConfig
+from romannet.common.episode_rules import clutter_progress
 from romannet.common.policy import decide
-from romannet.common.reward import clutter_progress, task_progress_reward
+from romannet.common.reward import task_progress_reward
 from romannet.common.wire import decode_transition
 from romannet.common.wire_messages import TransitionMsg
 from romannet.learner.trainer import Trainer

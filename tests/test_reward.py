@@ -13,11 +13,9 @@ from hypothesis import strategies as st
 from romannet.common.config import RewardConfig
 from romannet.common.errors import ConfigError
 from romannet.common.reward import (
-    clutter_progress,
     gaussian_kernel,
     kernel_support,
     progress_reversed,
-    stacking_progress,
     task_progress_reward,
     tpg_label,
     tpg_reward_map,
@@ -38,44 +36,6 @@ def weighted_covariance(weights: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------ progress
-def test_clutter_progress_is_the_removed_fraction_of_the_start_footprint():
-    start = np.zeros((10, 10))
-    start[:4, :] = 0.05  # 40 occupied pixels
-    now = np.zeros((10, 10))
-    now[:1, :] = 0.05  # 10 left
-    assert clutter_progress(now, start, 0.01) == pytest.approx(0.75)
-    assert clutter_progress(start, start, 0.01) == 0.0
-    assert clutter_progress(np.zeros((10, 10)), start, 0.01) == 1.0
-
-
-def test_clutter_progress_edge_cases():
-    empty = np.zeros((8, 8))
-    assert clutter_progress(empty, empty, 0.01) == 1.0  # nothing to remove: done
-    start = np.zeros((8, 8))
-    start[0, 0] = 0.05
-    spread = np.full((8, 8), 0.05)
-    assert clutter_progress(spread, start, 0.01) == 0.0  # footprint grew: clipped, never negative
-    below = np.full((8, 8), 0.005)  # thin things under the threshold are floor, not clutter
-    assert clutter_progress(below, start, 0.01) == 1.0
-    with_nan = start.copy()
-    with_nan[1, 1] = np.nan  # a missing depth reading is not an object
-    with_nan[2, 2] = np.inf
-    assert clutter_progress(with_nan, start, 0.01) == 0.0
-    with pytest.raises(ValueError, match="shapes differ"):
-        clutter_progress(np.zeros((4, 4)), np.zeros((8, 8)), 0.01)
-
-
-def test_stacking_progress():
-    assert stacking_progress(0.10, 0.20) == pytest.approx(0.5)
-    assert stacking_progress(3, 4) == pytest.approx(0.75)  # cube counts work too
-    assert stacking_progress(0.3, 0.2) == 1.0
-    assert stacking_progress(-0.01, 0.2) == 0.0
-    with pytest.raises(ValueError):
-        stacking_progress(0.1, 0.0)
-    with pytest.raises(ValueError):
-        stacking_progress(float("nan"), 0.2)
-
-
 def test_progress_reversal_uses_the_tolerance():
     assert progress_reversed(0.5, 0.4, 0.02)
     assert not progress_reversed(0.5, 0.49, 0.02)  # depth noise

@@ -43,9 +43,7 @@ def _scene_with_cubes(env: SimEnv, cubes: list[tuple[float, float, float, float]
         body = spawn_object(env.scene.client, ObjectSpec("cube", RED, (x, y, z), _quat_yaw(yaw)))
         env.scene.add_object(body)
     env.scene.settle(240)
-    env.obs = env._observe()
-    env.depth_start = env.obs.depth_hm
-    env.progress = env._progress(env.obs.depth_hm, env.stack_height_hm(env.obs.depth_hm))
+    env.observe_start()
 
 
 @pytest.fixture(scope="module")

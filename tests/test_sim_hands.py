@@ -33,8 +33,7 @@ def _pick_wide_cube(env: SimEnv) -> bool:
     body = spawn_object(env.scene.client, ObjectSpec("cube", (0.8, 0.2, 0.2, 1.0), (x, y, 0.046), scale=1.8))
     env.scene.add_object(body)
     env.scene.settle(240)
-    env.obs = env._observe()
-    env.depth_start = env.obs.depth_hm
+    env.observe_start()
     row, col = position_to_pixel(x + env.ws.resolution_m / 2, y + env.ws.resolution_m / 2, env.ws)
     return bool(env.step(Action("pick", row, col, 0.0, 1.0)).success)
 

@@ -8,8 +8,10 @@ Tasks (cfg.task.kind):
   heightmap (common.stack), done at task.goal_stack_height. Reset waits for the operator to un-stack.
 
 Success X comes from the hardware (vacuum sensor or finger width) for picks, from the depth heightmap for
-places (the stack grew), and from the motion for pushes; progress P from the depth heightmap, as in the
-simulator (common.reward). Episode rules (sim.max_steps, sim.max_consecutive_failures) are the simulator's.
+places (the stack grew), and from the motion for pushes; the step is judged by the simulator's rules
+(common.episode_rules: P, R_tp, the failure streak, sim.max_steps, sim.max_consecutive_failures), the task
+complete when the heightmap says so (a stack of the goal's height, or less than robot.empty_occupied_fraction
+of the bin occupied).
 
 A protective or emergency stop ends the episode as "robot_stopped" (the failed action is recorded with
 reward 0 and no new camera frame: the arm may be in view) and sets `paused`; the actor then waits for an
@@ -24,17 +26,20 @@ import time
 
 import numpy as np
 
-from romannet.common.action import Action, patch_max, pixel_to_position, refusal
+from romannet.common.action import Action, patch_max, pixel_to_position
 from romannet.common.config import Config, WorkspaceConfig
+from romannet.common.episode_rules import (
+    Measure,
+    done_reason,
+    goal_reached,
+    judge_step,
+    measure,
+    occupied_fraction,
+    refusal,
+)
 from romannet.common.errors import RobotError
 from romannet.common.heightmap import get_heightmaps
 from romannet.common.interfaces import Camera, MotionResult, Observation, Robot, StepResult
-from romannet.common.reward import (
-    clutter_progress,
-    progress_reversed,
-    stacking_progress,
-    task_progress_reward,
-)
 from romannet.common.stack import stack_height
 
 log = logging.getLogger(__name__)
@@ -52,11 +57,6 @@ def bin_workspaces(cfg: Config) -> list[WorkspaceConfig]:
     dx, dy = ws.x_max_m - ws.x_min_m, ws.y_max_m - ws.y_min_m
     return [dataclasses.replace(ws, x_min_m=x, x_max_m=x + dx, y_min_m=y, y_max_m=y + dy)
             for x, y in cfg.robot.bins_xy_m]
-
-
-def occupied_fraction(depth_hm: np.ndarray, occupied_height_m: float) -> float:
-    """Share of the heightmap above occupied_height_m (what "empty bin" is judged on)."""
-    return float(np.mean(depth_hm > occupied_height_m))
 
 
 class RealEnv:
@@ -103,12 +103,9 @@ class RealEnv:
     def _empty(self, obs: Observation) -> bool:
         return occupied_fraction(obs.depth_hm, self.cfg.reward.occupied_height_m) < self.cfg.robot.empty_occupied_fraction
 
-    def _measure(self, obs: Observation) -> None:
-        """What the step needs of a new observation, measured once: stack height (cubes), occupied share, P."""
-        self.stack_h = stack_height(obs.depth_hm, self.cfg.task.cube_size_m)
-        self.occupied = occupied_fraction(obs.depth_hm, self.cfg.reward.occupied_height_m)
-        self.progress = stacking_progress(self.stack_h, self.cfg.task.goal_stack_height) if self.stacking else \
-            clutter_progress(obs.depth_hm, self.depth_start, self.cfg.reward.occupied_height_m)
+    def _measure(self, obs: Observation) -> Measure:
+        """Stack height (cubes), occupied share and P of a new observation, measured once."""
+        return measure(obs.depth_hm, self.depth_start, self.cfg.task, self.cfg.reward)
 
     # ------------------------------------------------------------------------------------- episodes
     def reset(self, seed: int | None = None) -> Observation:
@@ -129,7 +126,7 @@ class RealEnv:
             raise RobotError("the tool still holds an object at the start of an episode: remove it")
         obs = self._ready_observation()
         self.depth_start = obs.depth_hm
-        self._measure(obs)
+        self.measured = self._measure(obs)
         self.obs, self.holding, self.steps, self.consecutive_failures = obs, False, 0, 0
         self._episode_over = False
         return obs
@@ -193,31 +190,29 @@ class RealEnv:
         if self._episode_over:
             raise RuntimeError("the episode is over (or never started): call reset() first")
         self.steps += 1
-        p_before, height_before = self.progress, self.stack_h
+        before = self.measured
         reason = refusal(action, self.primitives, self.holding, self.obs.depth_hm.shape)
         result = MotionResult(False, reason) if reason else self._execute(action)
         if result.stopped:
-            return self._stopped(action, result, p_before)
-        success, detail = result.success, result.reason
+            return self._stopped(action, result, before.progress)
         if action.primitive == "pick" and not reason:
-            self.holding = self.stacking and success and self.robot.holding()
+            self.holding = self.stacking and result.success and self.robot.holding()
         if action.primitive == "place" and not reason:
             self.holding = self.robot.holding()
         self.obs = self.observe(holding=self.holding)
-        self._measure(self.obs)
-        if action.primitive == "place" and success:
-            success = self.stack_h > height_before
-            detail = "" if success else "stack_not_higher"
-        p_after = self.progress
-        reversed_ = progress_reversed(p_before, p_after, self.cfg.reward.progress_tolerance)
-        reward = task_progress_reward(action.primitive, success, p_after, self.cfg.reward, reversed=reversed_)
-        self.consecutive_failures = 0 if success else self.consecutive_failures + 1
-        done_reason = self._done_reason()
-        self._episode_over = bool(done_reason)
+        self.measured = after = self._measure(self.obs)
+        judged = judge_step(action.primitive, result.success, result.reason, before, after,
+                            self.consecutive_failures, self.cfg.reward)
+        self.consecutive_failures = judged.consecutive_failures
+        empty = after.occupied < self.cfg.robot.empty_occupied_fraction
+        ended = done_reason(goal_reached(self.cfg.task, after.stack_height, empty), self.consecutive_failures,
+                            self.steps, self.cfg.sim)
+        self._episode_over = bool(ended)
         info = {"episode_seed": self.seed, "step": self.steps, "bin": self.source, "clamped": result.clamped,
-                "stack_height_hm": self.stack_h, "occupied_fraction": self.occupied,
+                "stack_height_hm": after.stack_height, "occupied_fraction": after.occupied,
                 "consecutive_failures": self.consecutive_failures}
-        return StepResult(self.obs, success, p_before, p_after, reward, bool(done_reason), done_reason, detail, info)
+        return StepResult(self.obs, judged.success, judged.progress_before, judged.progress_after, judged.reward,
+                          bool(ended), ended, judged.detail, info)
 
     def _stopped(self, action: Action, result: MotionResult, p_before: float) -> StepResult:
         self._episode_over = True
@@ -226,18 +221,6 @@ class RealEnv:
         log.error(self.paused)
         info = {"episode_seed": self.seed, "step": self.steps, "bin": self.source, "stopped": result.stopped}
         return StepResult(self.obs, False, p_before, p_before, 0.0, True, "robot_stopped", result.stopped, info)
-
-    def _done_reason(self) -> str:
-        if self.stacking:
-            if self.stack_h >= self.cfg.task.goal_stack_height:
-                return "done"
-        elif self.occupied < self.cfg.robot.empty_occupied_fraction:
-            return "done"
-        if self.consecutive_failures >= self.cfg.sim.max_consecutive_failures:
-            return "consecutive_failures"
-        if self.steps >= self.cfg.sim.max_steps:
-            return "step_limit"
-        return ""
 
     def try_resume(self) -> bool:
         """After an operator's resume request: True (pause lifted) if the robot can move again."""

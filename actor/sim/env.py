@@ -5,11 +5,12 @@ The robot is the Panda arm (sim.robot = "arm") or the floating Panda hand ("grip
 One PyBullet DIRECT client per SimEnv. Deterministic: the same seed gives the same scene, and the same
 actions then give the same outcomes (fixed time step, fixed call order, the episode's own numpy Generator).
 
-Per step: check the action (allowed primitive, holding state, pixel inside the heightmap), turn the pixel
-into a world pose with common.action.pixel_to_position on the current depth heightmap, run the primitive,
-capture a new observation, and judge it: X (push moved an object > push_moved_threshold_m, pick holds an
-object after the lift, place raised the heightmap stack), P before/after (common.reward), R_tp. Episodes
-end with done_reason "done", "unstable", "consecutive_failures" or "step_limit" (in that priority).
+Per step: refuse what cannot be attempted, turn the pixel into a world pose with
+common.action.pixel_to_position on the current depth heightmap, run the primitive (X as it reports it:
+push moved an object > push_moved_threshold_m, pick holds an object after the lift), capture a new
+observation, and judge the step by the rules a real robot applies too (common.episode_rules: the place
+rule, P, R_tp, the failure streak, the done reason). The one thing measured differently: the task is
+complete by the objects' true poses (none left in the workspace, or a stack of the goal's height).
 """
 
 from __future__ import annotations
@@ -19,16 +20,11 @@ import time
 
 import numpy as np
 
-from romannet.common.action import Action, patch_max, pixel_to_position, refusal
+from romannet.common.action import Action, patch_max, pixel_to_position
 from romannet.common.config import CameraConfig, Config, RewardConfig, TaskConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
+from romannet.common.episode_rules import Measure, done_reason, goal_reached, judge_step, measure, refusal
 from romannet.common.interfaces import Observation, StepResult
-from romannet.common.reward import (
-    clutter_progress,
-    progress_reversed,
-    stacking_progress,
-    task_progress_reward,
-)
 from romannet.common.stack import stack_height
 
 from .gripper import FloatingGripper
@@ -97,9 +93,14 @@ class SimEnv:
         self.consecutive_failures = 0
         self.picks = self.successful_picks = 0
         self._episode_over = False
+        return self.observe_start()
+
+    def observe_start(self) -> Observation:
+        """Observe the scene as it is now as the episode's start (P's reference); reset() ends with it, and
+        tests that build a scene by hand after reset() call it again."""
         self.obs = self._observe()
         self.depth_start = self.obs.depth_hm
-        self.progress = self._progress(self.obs.depth_hm, self.stack_height_hm(self.obs.depth_hm))
+        self.measured = self._measure(self.obs.depth_hm)
         return self.obs
 
     def close(self) -> None:
@@ -127,11 +128,14 @@ class SimEnv:
         self.last_observe_s = time.perf_counter() - t0  # wall-clock, for the benchmark only
         return Observation(color_hm, depth_hm, self.holding, frame.color, frame.depth_m)
 
-    def _progress(self, depth_hm: np.ndarray, height_hm: int) -> float:
-        """Task progress of a heightmap; height_hm: its stack_height_hm (measured once per observation)."""
-        if self.task_def.progress == "stacking":
-            return stacking_progress(height_hm, self.task.goal_stack_height)
-        return clutter_progress(depth_hm, self.depth_start, self.reward_cfg.occupied_height_m)
+    def _measure(self, depth_hm: np.ndarray) -> Measure:
+        """Stack height, occupied share and P of a heightmap of this episode (once per observation)."""
+        return measure(depth_hm, self.depth_start, self.task, self.reward_cfg)
+
+    @property
+    def progress(self) -> float:
+        """Task progress P of the current observation."""
+        return self.measured.progress
 
     def stack_height_hm(self, depth_hm: np.ndarray) -> int:
         """Stack height in cubes measured on a depth heightmap (what the reward uses, as on a real robot)."""
@@ -167,55 +171,36 @@ class SimEnv:
         if self._episode_over:
             raise RuntimeError("the episode is over (or never started): call reset() first")
         self.steps += 1
-        p_before, hm_before = self.progress, self.obs.depth_hm
+        before = self.measured
         reason = refusal(action, self.primitives, self.holding, self.obs.depth_hm.shape)
         result = PrimitiveResult(False, reason, 0) if reason else self._execute(action)
-        success, detail = result.success, result.reason
         if action.primitive == "pick" and not reason:
             self.picks += 1
-            if success and not self.task_def.remove_picked:  # (clutter: the pick removed it already)
+            if result.success and not self.task_def.remove_picked:  # (clutter: the pick removed it already)
                 self.holding, self.held_body, self.hang_m = True, result.held_body, result.hang_m
-            self.successful_picks += int(success)
+            self.successful_picks += int(result.success)
         if action.primitive == "place" and not reason:
             self.holding, self.held_body, self.hang_m = False, None, 0.0
 
         unstable = result.unstable or self.scene.instability()
         self.obs = self._observe()
-        height_hm = self.stack_height_hm(self.obs.depth_hm)  # once per step: place check, progress, info
-        if action.primitive == "place" and success:
-            success = height_hm > self.stack_height_hm(hm_before)
-            detail = "" if success else "stack_not_higher"
-        p_after = self._progress(self.obs.depth_hm, height_hm)
-        self.progress = p_after
-        reversed_ = progress_reversed(p_before, p_after, self.reward_cfg.progress_tolerance)
-        reward = task_progress_reward(action.primitive, success, p_after, self.reward_cfg, reversed=reversed_)
-        self.consecutive_failures = 0 if success else self.consecutive_failures + 1
+        self.measured = self._measure(self.obs.depth_hm)
+        judged = judge_step(action.primitive, result.success, result.reason, before, self.measured,
+                            self.consecutive_failures, self.reward_cfg)
+        self.consecutive_failures = judged.consecutive_failures
 
         in_workspace, height_gt = objects_in_workspace(self.scene), self.stack_height_gt()  # once per step
-        done_reason = self._done_reason(unstable, in_workspace, height_gt)
-        self._episode_over = bool(done_reason)
+        ended = done_reason(goal_reached(self.task, height_gt, in_workspace == 0), self.consecutive_failures,
+                            self.steps, self.sim, unstable)
+        self._episode_over = bool(ended)
         if unstable:
             log.warning("episode ended unstable (seed %d, step %d): %s", self.seed, self.steps, unstable)
         info: dict[str, float | int | str | bool] = {
             "seed": self.seed, "step": self.steps, "physics_steps": result.steps,
             "objects_in_workspace": in_workspace,
-            "stack_height_gt": height_gt, "stack_height_hm": height_hm,
+            "stack_height_gt": height_gt, "stack_height_hm": self.measured.stack_height,
             "moved_m": result.moved_m, "consecutive_failures": self.consecutive_failures,
             "unstable": unstable,
         }
-        return StepResult(self.obs, success, p_before, p_after, reward, bool(done_reason), done_reason,
-                          detail, info)
-
-    def _done_reason(self, unstable: str, in_workspace: int, height_gt: int) -> str:
-        if unstable:
-            return "unstable"
-        if self.task_def.progress == "stacking":
-            if height_gt >= self.task.goal_stack_height:
-                return "done"
-        elif in_workspace == 0:
-            return "done"
-        if self.consecutive_failures >= self.sim.max_consecutive_failures:
-            return "consecutive_failures"
-        if self.steps >= self.sim.max_steps:
-            return "step_limit"
-        return ""
+        return StepResult(self.obs, judged.success, judged.progress_before, judged.progress_after, judged.reward,
+                          bool(ended), ended, judged.detail, info)

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from romannet.common.episode_file import STEP_TOPIC, EpisodeFileError, EpisodeReader
+from romannet.common.episode_rules import ideal_actions
 
 log = logging.getLogger(__name__)
 
@@ -51,13 +52,12 @@ def read_step_records(path: Path) -> list[dict]:
 
 
 def _ideal(task: str, goal_height: int, records: Sequence[dict]) -> int:
-    if task == "stacking":
-        return 2 * (goal_height - 1)
     first = records[0]
     info = first.get("info") or {}
     # Objects at the start: those left after the first action, plus the one it removed (a clutter pick).
-    left = int(info.get("objects_in_workspace", 0))
-    return left + int(first.get("primitive") == "pick" and bool(first.get("success")))
+    removed = first.get("primitive") == "pick" and bool(first.get("success"))
+    objects = int(info.get("objects_in_workspace", 0)) + int(removed)
+    return ideal_actions(task, objects, goal_height)
 
 
 def episode_actions(task: str, goal_stack_height: int, records: Sequence[dict]) -> list[TrainingAction]:

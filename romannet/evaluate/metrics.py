@@ -43,7 +43,7 @@ class RunLog:
     """One evaluation run: what was asked, what happened, and how the environment ended it.
 
     end_reason: the environment's (done, consecutive_failures, step_limit, unstable) or "error: …".
-    ideal_actions: from `ideal_actions()` at the run's start (objects present, or the goal height).
+    ideal_actions: common.episode_rules.ideal_actions at the run's start (objects present, or the goal).
     """
 
     case: str  # "clutter", "stacking-h4" or an arrangement case name
@@ -56,19 +56,6 @@ class RunLog:
     @property
     def actions(self) -> int:
         return len(self.steps)
-
-
-def ideal_actions(task: str, num_objects: int, goal_stack_height: int) -> int:
-    """The paper's ideal action count: #objects for removal tasks, 2 (h - 1) for stacking to height h."""
-    if task == "stacking":
-        if goal_stack_height < 2:
-            raise ValueError(f"goal stack height {goal_stack_height}: stacking needs a goal of at least 2")
-        return 2 * (goal_stack_height - 1)
-    if task in ("clutter", "arrangement"):
-        if num_objects < 1:
-            raise ValueError(f"{task} with {num_objects} objects: nothing to remove")
-        return num_objects
-    raise ValueError(f"unknown task {task!r}: expected clutter, arrangement or stacking")
 
 
 def failure_streak_at(successes: Sequence[bool], limit: int = MAX_CONSECUTIVE_FAILURES) -> int | None:

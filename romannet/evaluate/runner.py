@@ -32,13 +32,14 @@ from romannet.actor.sim.oracle import oracle_action
 from romannet.actor.sim.tasks import objects_in_workspace
 from romannet.common.action import Action
 from romannet.common.config import Config, load_config_text
+from romannet.common.episode_rules import ideal_actions
 from romannet.common.interfaces import Observation
 from romannet.common.model import RoManNet, load_tensors
 from romannet.common.policy import InferenceEngine, decide
 from romannet.common.wire_messages import TransitionMsg
 from romannet.learner.trainer import Trainer
 
-from .metrics import RunLog, StepLog, ideal_actions
+from .metrics import RunLog, StepLog
 from .policies import POLICIES, random_action
 
 log = logging.getLogger(__name__)
