@@ -156,6 +156,7 @@ def run_acl_probe(configs: str | Path, actor_ids: Sequence[str] = ("actor-0", "a
             s["replay"].declare_subscriber(keys.replay_priorities, priorities.sample_cb()),
             s["learner"].declare_queryable(keys.weights_fetch, _Inbox().query_cb(b"learner-weights")),
             s[b].declare_subscriber(keys.weights_announce, b_heard.sample_cb()),
+            s[b].declare_subscriber(keys.weights_data, b_heard.sample_cb()),
             s[b].declare_subscriber(keys.exploration, b_heard.sample_cb()),
             # The intruder: serve what only the learner and the replay server may serve, listen to everything.
             s[a].declare_queryable(keys.weights_fetch, fake_fetches.query_cb(b"fake-weights")),
@@ -188,20 +189,25 @@ def run_acl_probe(configs: str | Path, actor_ids: Sequence[str] = ("actor-0", "a
               seen(b"replay-ack" in fed))
 
         s["learner"].put(keys.weights_announce, b"learner-announcement")
+        s["learner"].put(keys.weights_data, b"learner-weights-put")
         s["learner"].put(keys.exploration, b"learner-rate")
         s["operator"].put(keys.actor_live(b, "/camera/color"), b"live-frame")
         s[a].put(keys.weights_announce, b"forged-announcement")
+        s[a].put(keys.weights_data, b"forged-weights-put")
         s[a].put(keys.exploration, b"forged-rate")
         s[a].put(keys.replay_priorities, b"forged-priorities")
         s["learner"].put(keys.replay_priorities, b"learner-priorities")
         s["replay"].put(keys.weights_announce, b"replay-announcement")
-        _wait_until(lambda: b"learner-rate" in b_heard.payloads() and b"learner-priorities" in
-                    priorities.payloads() and b"live-frame" in live_seen.payloads(), ARRIVAL_TIMEOUT_S)
+        _wait_until(lambda: b"learner-rate" in b_heard.payloads() and b"learner-weights-put" in b_heard.payloads()
+                    and b"learner-priorities" in priorities.payloads() and b"live-frame" in live_seen.payloads(),
+                    ARRIVAL_TIMEOUT_S)
         time.sleep(SETTLE_S)  # the forged messages went out beside the learner's: as much time to arrive
         heard = b_heard.payloads()
         check("learner publishes weights announcements and rates", "allowed",
               seen(b"learner-announcement" in heard and b"learner-rate" in heard))
         check(f"{a} publishes weights announcements", "denied", seen(b"forged-announcement" in heard))
+        check(f"learner puts weights to {b}", "allowed", seen(b"learner-weights-put" in heard))
+        check(f"{a} puts weights", "denied", seen(b"forged-weights-put" in heard))
         check(f"{a} publishes exploration rates", "denied", seen(b"forged-rate" in heard))
         check("replay server publishes weights announcements", "denied", seen(b"replay-announcement" in heard))
         check("learner publishes priorities", "allowed", seen(b"learner-priorities" in priorities.payloads()))

@@ -106,7 +106,7 @@ def _role_rules(role: str) -> list[dict[str, Any]]:
             _rule("learner-samples", ["query"], "ingress", ["replay/sample", "replay/stats"]),
             _rule("learner-gets-batches", ["reply"], "egress", ["replay/sample", "replay/stats"]),
             _rule("learner-publishes", ["put"], "ingress",
-                  ["replay/priorities", "weights/announce", "exploration"]),
+                  ["replay/priorities", "weights/data", "weights/announce", "exploration"]),
             _rule("learner-serves-weights", ["declare_queryable", "reply"], "ingress", ["weights/fetch"]),
             _rule("learner-gets-fetches", ["query"], "egress", ["weights/fetch"]),
             _rule("learner-is-alive", ["liveliness_token"], "ingress", ["learner/alive"]),
@@ -142,8 +142,8 @@ def _actor_rules(actor_id: str) -> list[dict[str, Any]]:
 
 # What every actor may do besides its own inserts and liveliness: hear the learner.
 _ACTORS_COMMON = [
-    _rule("actors-listen", ["declare_subscriber"], "ingress", ["weights/announce", "exploration"]),
-    _rule("actors-hear", ["put"], "egress", ["weights/announce", "exploration"]),
+    _rule("actors-listen", ["declare_subscriber"], "ingress", ["weights/data", "weights/announce", "exploration"]),
+    _rule("actors-hear", ["put"], "egress", ["weights/data", "weights/announce", "exploration"]),
     _rule("actors-fetch-weights", ["query"], "ingress", ["weights/fetch"]),
     _rule("actors-get-weights", ["reply"], "egress", ["weights/fetch"]),
     _rule("actors-watch-learner", ["declare_liveliness_subscriber", "liveliness_query"], "ingress",
