@@ -1,24 +1,40 @@
-"""Weights propagation latency: from the learner publishing version N to every actor holding it, loaded.
+"""Weights propagation: latency from the learner publishing version N to every actor holding it, and the
+bytes that leave the learner per version.
 
-    measure_weights_latency(actors=8, repeats=5)
+    measure_weights_latency(actors=8, repeats=5)                  # through a router, three protocols
+    python -m romannet.bench.weights_latency --actors 1 8 --json  # the same for several fleet sizes
 
-The "learner" is this process: a WeightsPublisher (learner/publisher.py) on a Zenoh session listening on a
-free loopback port, with the learner's liveliness token. Each "light actor" is a separate process
-(`python -m romannet.bench.weights_latency --light-actor ...`) without physics: a Zenoh session connected
-to that port, a ZenohWeightsSource (common/weights_client.py, what real actors use), a RoManNet of the
-same config; it polls every 2 ms and, when a new version arrives, validates and loads it into its model
-(what an actor does before its next action), then appends `<version> <monotonic_ns>` to its report
-file. CLOCK_MONOTONIC is system-wide on Linux, so the times compare across processes.
+The "learner" is this process: a WeightsPublisher (learner/publisher.py) on a Zenoh session, with the
+learner's liveliness token. With topology "router" a `romannet router` process listens on a free loopback
+port and the learner and the actors are its clients, as on a fleet network; with "peer" the actors connect
+to the learner's session directly. Each "light actor" is a separate process (`--light-actor`) without
+physics: a ZenohWeightsSource (common/weights_client.py, what real actors use) and a RoManNet of the same
+config; it polls every 2 ms and, when a new version arrives, validates and loads it into its model (what an
+actor does before its next action), then appends `<version> <monotonic_ns>` to its report file.
+CLOCK_MONOTONIC is system-wide on Linux, so the times compare across processes.
 
-Latency per version = the slowest actor's load time - the time publish_weights() was called (so the
-learner's own encoding, SHA-256 and announcement are included). A real actor also waits for the action
-under way to end before it swaps weights; that wait is the action time and is not measured here.
+The same actors are served by three publishers in turn, each for `repeats` versions (ratios within one run):
+"fetch-fp32" announces only, so every actor fetches its own copy with a query (the protocol before the
+put); "push-fp32" puts each version once on weights/data; "push-bf16" does so with the body's convolutions
+in bf16 (common/weights_wire.py). Fetch runs first: actors that have seen a push wait a moment for the data
+before fetching an announced version.
+
+Latency per version = the slowest actor's load time - the time publish_weights() was called (the learner's
+encoding, SHA-256 and puts included). Bytes per version = the growth of `bytes_acked` of this process's TCP
+sockets (`ss -ti`) from just before the publish until every actor holds the version: what went out of the
+learner's machine. Zenoh's shared memory between local processes is off in every session here, so the
+sockets carry what a network between machines would. A real actor also waits for the action under way to end before it swaps weights; that
+wait is the action time and is not measured here.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import os
+import re
+import socket
 import statistics
 import subprocess
 import sys
@@ -30,10 +46,14 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 RUN_ID = "bench-weights"
+MODES = ("fetch-fp32", "push-fp32", "push-bf16")
 _POLL_S = 0.002
+_SOCKET = re.compile(r"pid=(\d+),")
+_ACKED = re.compile(r"bytes_acked:(\d+)")
 
 
-def _light_actor(connect: str, report: Path, stop: Path, channels: int, blocks: int, timeout_s: float) -> None:
+def _light_actor(connect: str, mode: str, report: Path, stop: Path, channels: int, blocks: int,
+                 timeout_s: float) -> None:
     """Hold the newest weights until `stop` exists; report each version when it is loaded."""
     import torch
 
@@ -44,8 +64,10 @@ def _light_actor(connect: str, report: Path, stop: Path, channels: int, blocks: 
 
     torch.set_num_threads(1)
     model = RoManNet(ModelConfig(channels=channels, residual_blocks=blocks))
+    config = _no_shm(make_config(listen=[], connect=[connect]))
+    config.insert_json5("mode", json.dumps(mode))
     deadline = time.monotonic() + timeout_s
-    with open_session(make_config(listen=[], connect=[connect])) as session, \
+    with open_session(config) as session, \
             ZenohWeightsSource(session, RUN_ID, validate=lambda t: validate_tensors(model, t)) as source, \
             report.open("a") as out:
         while not stop.exists() and time.monotonic() < deadline:
@@ -88,71 +110,189 @@ def _wait_all(paths: list[Path], version: int, timeout_s: float) -> list[dict[in
         time.sleep(0.005)
 
 
+def bytes_out(pid: int) -> int | None:
+    """Bytes acknowledged by the peers of pid's established TCP sockets (None without a working `ss`)."""
+    try:
+        text = subprocess.run(["ss", "-tinpH", "state", "established"], capture_output=True, text=True,
+                              timeout=10, check=True).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None
+    total, mine = 0, False
+    for line in text.splitlines():  # a socket's line (with its process) then its indented info line
+        owner = _SOCKET.search(line)
+        if owner:
+            mine = int(owner.group(1)) == pid
+        elif mine and (acked := _ACKED.search(line)):
+            total += int(acked.group(1))
+            mine = False
+    return total
+
+
+def _no_shm(config: Any) -> Any:
+    """Zenoh moves large payloads between processes of one host through shared memory and sends only a
+    reference on the socket: off, so the bytes on the sockets are those a network between machines carries."""
+    config.insert_json5("transport/shared_memory/enabled", "false")
+    return config
+
+
+def _start_router(port: int, folder: Path) -> subprocess.Popen:
+    """A `romannet router` process on 127.0.0.1:port (multicast scouting and shared memory off), once it
+    accepts TCP."""
+    config = folder / "router.json5"
+    config.write_text('{mode: "router", scouting: {multicast: {enabled: false}}, '
+                      'transport: {shared_memory: {enabled: false}}}')
+    log_path = folder / "router.log"
+    with log_path.open("ab") as log_file:
+        proc = subprocess.Popen([sys.executable, "-m", "romannet.cli", "router", "--zenoh-config", str(config),
+                                 "--listen", f"tcp/127.0.0.1:{port}"], stdin=subprocess.DEVNULL,
+                                stdout=log_file, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the router exited with {proc.returncode}: {log_path.read_text()[-2000:]}")
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return proc
+        time.sleep(0.1)
+    proc.kill()
+    raise TimeoutError("the router did not listen within 60 s")
+
+
+def _stop(proc: subprocess.Popen, signal_first: bool = False) -> None:
+    if signal_first and proc.poll() is None:
+        proc.terminate()
+    try:
+        proc.wait(30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def _median(values: list[float]) -> float | None:
+    return round(statistics.median(values), 1) if values else None
+
+
 def measure_weights_latency(actors: int, repeats: int = 5, channels: int = 32, blocks: int = 5,
+                            topology: str = "router", modes: tuple[str, ...] = MODES,
                             start_timeout_s: float = 180.0) -> dict[str, Any]:
-    """Publish `repeats` new versions to `actors` light actors; latencies in milliseconds (medians)."""
+    """Publish `repeats` new versions per mode to `actors` light actors; milliseconds and bytes (medians).
+    The top-level latency fields are the last mode's (the learner's default protocol)."""
     from romannet.common.config import ModelConfig
     from romannet.common.keys import RunKeys
     from romannet.common.model import RoManNet, state_dict_to_tensors
     from romannet.common.zenoh_session import free_port, make_config, open_session
     from romannet.learner.publisher import WeightsPublisher
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    if topology not in ("router", "peer") or not modes or any(m not in MODES for m in modes):
+        raise ValueError(f"topology must be 'router' or 'peer' and modes some of {MODES}")
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
     tensors = state_dict_to_tensors(RoManNet(ModelConfig(channels=channels, residual_blocks=blocks)))
+    results: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory(prefix="romannet-bench-weights-") as tmp:
         stop = Path(tmp) / "stop"
         paths = [Path(tmp) / f"actor-{i}.txt" for i in range(actors)]
         procs: list[subprocess.Popen] = []
-        with open_session(make_config(listen=[endpoint], connect=[])) as session, \
-                WeightsPublisher(session, RUN_ID) as publisher:
-            first = publisher.publish_weights(0, tensors)
-            token = session.liveliness().declare_token(RunKeys(RUN_ID).learner_alive)
-            try:
-                for path in paths:
-                    procs.append(subprocess.Popen(
-                        [sys.executable, "-m", "romannet.bench.weights_latency", "--light-actor", "--connect",
-                         endpoint, "--report", str(path), "--stop", str(stop), "--channels", str(channels),
-                         "--blocks", str(blocks)], stdin=subprocess.DEVNULL))
-                _wait_all(paths, 0, start_timeout_s)  # connected, fetched the current version, loaded it
-                all_ms, each_ms, publish_ms = [], [], []
-                for version in range(1, repeats + 1):
-                    time.sleep(0.5)  # let the previous round's work settle
-                    t0 = time.monotonic_ns()
-                    publisher.publish_weights(version, tensors)
-                    publish_ms.append((time.monotonic_ns() - t0) / 1e6)
-                    reports = _wait_all(paths, version, 60.0)
-                    lat = [(r[version] - t0) / 1e6 for r in reports]
-                    all_ms.append(max(lat))
-                    each_ms.extend(lat)
-            finally:
-                stop.touch()
-                for p in procs:
-                    try:
-                        p.wait(30)
-                    except subprocess.TimeoutExpired:
-                        p.kill()
-                        p.wait()
-                token.undeclare()
-    return {"actors": actors, "repeats": repeats, "weights_bytes": first.size_bytes,
-            "all_actors_ms_median": round(statistics.median(all_ms), 1),
-            "all_actors_ms": [round(v, 1) for v in all_ms],
-            "per_actor_ms_median": round(statistics.median(each_ms), 1),
-            "publish_call_ms_median": round(statistics.median(publish_ms), 1)}
+        router = _start_router(port, Path(tmp)) if topology == "router" else None
+        config = _no_shm(make_config(listen=[] if router else [endpoint], connect=[endpoint] if router else []))
+        if router:
+            config.insert_json5("mode", '"client"')
+        try:
+            with open_session(config) as session:
+                publisher = WeightsPublisher(session, RUN_ID, *_publisher_args(modes[0]))
+                publisher.publish_weights(0, tensors)
+                token = session.liveliness().declare_token(RunKeys(RUN_ID).learner_alive)
+                try:
+                    for path in paths:
+                        procs.append(subprocess.Popen(
+                            [sys.executable, "-m", "romannet.bench.weights_latency", "--light-actor",
+                             "--connect", endpoint, "--mode", "client" if router else "peer", "--report",
+                             str(path), "--stop", str(stop), "--channels", str(channels), "--blocks", str(blocks)],
+                            stdin=subprocess.DEVNULL))
+                    _wait_all(paths, 0, start_timeout_s)  # connected, fetched the current version, loaded it
+                    version = 0
+                    for mode in modes:
+                        publisher.close()
+                        publisher = WeightsPublisher(session, RUN_ID, *_publisher_args(mode))
+                        results[mode], version = _measure_mode(publisher, tensors, paths, version, repeats)
+                finally:
+                    stop.touch()
+                    for p in procs:
+                        _stop(p)
+                    token.undeclare()
+                    publisher.close()
+        finally:
+            if router is not None:
+                _stop(router, signal_first=True)
+    last = results[modes[-1]]
+    return {"actors": actors, "repeats": repeats, "topology": topology, "fp32_weights_bytes": last["fp32_bytes"],
+            "all_actors_ms_median": last["all_actors_ms_median"],
+            "per_actor_ms_median": last["per_actor_ms_median"],
+            "publish_call_ms_median": last["publish_call_ms_median"],
+            "modes": {m: {k: v for k, v in r.items() if k != "fp32_bytes"} for m, r in results.items()}}
+
+
+def _publisher_args(mode: str) -> tuple[str, bool]:
+    """(wire dtype, push) of a mode name."""
+    protocol, dtype = mode.split("-")
+    return dtype, protocol == "push"
+
+
+def _measure_mode(publisher: Any, tensors: dict, paths: list[Path], version: int,
+                  repeats: int) -> tuple[dict[str, Any], int]:
+    """`repeats` versions through one publisher; returns its medians and the last version published."""
+    all_ms, each_ms, publish_ms, sent = [], [], [], []
+    served_before = publisher.served
+    for _ in range(repeats):
+        version += 1
+        time.sleep(0.5)  # let the previous round's work settle
+        before = bytes_out(os.getpid())
+        t0 = time.monotonic_ns()
+        announcement = publisher.publish_weights(version, tensors)
+        publish_ms.append((time.monotonic_ns() - t0) / 1e6)
+        reports = _wait_all(paths, version, 120.0)
+        after = bytes_out(os.getpid())
+        lat = [(r[version] - t0) / 1e6 for r in reports]
+        all_ms.append(max(lat))
+        each_ms.extend(lat)
+        if before is not None and after is not None:
+            sent.append(after - before)
+    fp32_bytes = sum(t.numel() * 4 if t.is_floating_point() else t.numel() * t.element_size()
+                     for t in tensors.values())
+    return {"weights_bytes": announcement.size_bytes, "fp32_bytes": fp32_bytes,
+            "learner_bytes_out_per_version_median": int(statistics.median(sent)) if sent else None,
+            "copies_per_version": round(statistics.median(sent) / announcement.size_bytes, 2) if sent else None,
+            "fetches_per_version": round((publisher.served - served_before) / repeats, 2),
+            "all_actors_ms_median": _median(all_ms), "all_actors_ms": [round(v, 1) for v in all_ms],
+            "per_actor_ms_median": _median(each_ms), "publish_call_ms_median": _median(publish_ms)}, version
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of a light actor process."""
-    p = argparse.ArgumentParser(description="light actor for the weights-latency benchmark (internal)")
-    p.add_argument("--light-actor", action="store_true", required=True)
-    p.add_argument("--connect", required=True)
-    p.add_argument("--report", required=True, type=Path)
-    p.add_argument("--stop", required=True, type=Path)
+    """The benchmark (one JSON object per fleet size, or one list with --json), or a light actor process."""
+    p = argparse.ArgumentParser(description="weights latency and learner egress per version, 1..N light actors")
+    p.add_argument("--actors", type=int, nargs="+", default=[1, 8])
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--topology", choices=("router", "peer"), default="router")
+    p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
+    p.add_argument("--json", action="store_true", help="one JSON list on stdout")
+    # A light actor (started by the benchmark itself).
+    p.add_argument("--light-actor", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--connect", help=argparse.SUPPRESS)
+    p.add_argument("--mode", default="peer", help=argparse.SUPPRESS)
+    p.add_argument("--report", type=Path, help=argparse.SUPPRESS)
+    p.add_argument("--stop", type=Path, help=argparse.SUPPRESS)
     p.add_argument("--channels", type=int, default=32)
     p.add_argument("--blocks", type=int, default=5)
-    p.add_argument("--timeout-s", type=float, default=900.0)
+    p.add_argument("--timeout-s", type=float, default=900.0, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING)
-    _light_actor(args.connect, args.report, args.stop, args.channels, args.blocks, args.timeout_s)
+    if args.light_actor:
+        logging.basicConfig(level=logging.WARNING)
+        _light_actor(args.connect, args.mode, args.report, args.stop, args.channels, args.blocks, args.timeout_s)
+        return 0
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr)
+    results = [measure_weights_latency(n, args.repeats, args.channels, args.blocks, args.topology,
+                                       tuple(args.modes)) for n in args.actors]
+    sys.stdout.write(json.dumps(results if args.json else results[-1]) + "\n")
     return 0
 
 
