@@ -169,7 +169,8 @@ def last(values: np.ndarray) -> float | None:
 
 
 def summary(curves: RunCurves) -> dict[str, float | int | None]:
-    """The run's latest values (each curve's last point), for the CLI and TensorBoard's hparams table."""
+    """The run's latest values (each curve's last point; return and length as their rolling mean), as
+    `romannet plot RUN_DIR` prints them."""
     return {"actions": curves.actions, "episodes": curves.episodes,
             "completed": curves.completed,
             "final_success_rate": last(curves.success_rate), "final_efficiency": last(curves.efficiency),
