@@ -51,6 +51,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         big = tuple(int(m) for m in args.big_mb.split(",") if m.strip())
         result = run_fuzz(FuzzPlan(messages=args.messages, big_mb=big, seed=args.seed))
+    elif args.what == "chaos":
+        from romannet.bench.chaos import ChaosPlan, run_chaos
+
+        low, high = (float(x) for x in args.kill_every.split(","))
+        result = run_chaos(ChaosPlan(duration_s=args.duration, kill_every_s=(low, high), flips=args.flips,
+                                     seed=args.seed))
     elif args.what == "faults":
         from romannet.bench.faults import run_fault_scenario_checked
 
@@ -97,6 +103,19 @@ BENCHMARKS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
              "exactly its good items, and its exit code. About 30 s and 2 GB in this process for a 1 GB message. "
              "Exit 1 if a check fails.", "romannet bench fuzz --json --messages 2000 --big-mb 100,250,500,1000",
              ("seed", "messages", "big_mb")),
+    "chaos": ("2 actors for 10 min while random children are SIGKILLed; lost, duplicated, memory",
+              "A fleet of 2 actors (replay server, learner, actor-0, actor-1 as processes on loopback Zenoh; a "
+              "tiny model, 64x64 heightmaps) trains for --duration seconds while every 30-90 s (--kill-every) "
+              "one random child (each once per round of four) is killed with SIGKILL and restarted at once (the learner with --resume), and "
+              "after each kill --flips bytes are flipped in a copy of the replay directory, which is then "
+              "checked as `romannet replay --check` does. It prints actions, acknowledged, stored, lost and "
+              "duplicated (the replay's durable log read back at the end), per replay kill the items the server "
+              "held just before and recovered after, per damaged copy what was recovered, reported "
+              "damaged, reported lost and unreported, and each service's peak RSS in each half of the run. "
+              "Exit 1 unless 0 lost, 0 duplicated, nothing unreported, memory flat (second-half peak <= 1.5x "
+              "the first) and every process stopped cleanly. Not a test: run it niced on a shared machine.",
+              "romannet bench chaos --json --duration 600 --kill-every 30,90 --flips 8",
+              ("seed", "duration", "kill_every", "flips")),
     "faults": ("a secure multi-host fleet through kill -9, a cut link and an intruder (root)",
                "A secure fleet on five Linux network-namespace hosts (a router; the replay server and the "
                "learner; two actors; an operator), with the configs `romannet deploy certs` writes: mutual TLS, "
@@ -122,7 +141,7 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
         # cmd_bench reads every field; a benchmark without the option gets its default.
         q.set_defaults(seed=0, repeats=None, inserts=2000, actions=10, robots="arm,gripper", hands="panda,rg2",
                        cube_sizes="0.05,0.04", batch_sizes="1,4,8", device="cpu", messages=2000,
-                       big_mb="100,250,500,1000")
+                       big_mb="100,250,500,1000", duration=600.0, kill_every="30,90", flips=8)
         if "seed" in options:
             q.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
         if "repeats" in options:
@@ -148,5 +167,12 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
         if "big_mb" in options:
             q.add_argument("--big-mb", default="100,250,500,1000",
                            help="comma-separated sizes (MB) of the messages far over every limit")
+        if "duration" in options:
+            q.add_argument("--duration", type=float, default=600.0, help="seconds of chaos once the fleet is up")
+        if "kill_every" in options:
+            q.add_argument("--kill-every", default="30,90", metavar="LOW,HIGH",
+                           help="seconds between kills, drawn uniformly from [LOW, HIGH]")
+        if "flips" in options:
+            q.add_argument("--flips", type=int, default=8, help="bytes flipped in each damaged copy")
         if "device" in options:
             q.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (when there is a GPU)")
