@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from romannet.common.config import PRIMITIVES
+from romannet.common.pictures import top_view
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +61,8 @@ def action_image(color_hm: np.ndarray, q_map: np.ndarray, row: int, col: int, an
     """uint8 (h*scale, 2*w*scale, 3) RGB: the colour heightmap and the Q map (viridis-like colormap, scaled
     to its own min..max) side by side, the executed pixel circled and its angle drawn as a line on both.
 
-    The angle is in the image frame: 0 along +col, positive toward +row (the convention of common.action).
+    The angle is in the arrays' frame: 0 along +col, positive toward +row (the convention of common.action).
+    Both are drawn seen from above, x right and y up (rows bottom-up), as every picture is (common.pictures).
     """
     h, w = q_map.shape
     q = np.nan_to_num(np.asarray(q_map, dtype=np.float32))
@@ -68,7 +70,8 @@ def action_image(color_hm: np.ndarray, q_map: np.ndarray, row: int, col: int, an
     q8 = ((q - q.min()) / span * 255).astype(np.uint8) if span > 0 else np.zeros((h, w), np.uint8)
     q_rgb = cv2.cvtColor(cv2.applyColorMap(q8, cv2.COLORMAP_VIRIDIS), cv2.COLOR_BGR2RGB)
     panels = []
-    for img in (np.ascontiguousarray(color_hm[..., :3], dtype=np.uint8), q_rgb):
+    row, angle_rad = h - 1 - row, -angle_rad  # to the top view's rows and turn
+    for img in (top_view(np.asarray(color_hm[..., :3], dtype=np.uint8)), top_view(q_rgb)):
         big = cv2.resize(img, (w * scale, h * scale), interpolation=cv2.INTER_NEAREST)
         center = (int(col * scale + scale // 2), int(row * scale + scale // 2))
         radius = max(3, min(h, w) * scale // 20)

@@ -83,3 +83,16 @@ def test_titled_puts_a_bar_above() -> None:
     panel = np.full((10, 300, 3), 7, np.uint8)
     out = titled(panel, "depth heightmap")
     assert out.shape == (10 + TITLE_PX, 300, 3) and (out[TITLE_PX:] == 7).all() and (out[:TITLE_PX] > 200).any()
+
+
+def test_learner_action_image_is_drawn_from_above_too() -> None:
+    """TensorBoard's action image (learner.metrics) in the same orientation: row 0 (y_min) at the bottom."""
+    from romannet.learner.metrics import action_image
+
+    q = np.zeros((20, 20), np.float32)
+    q[0, :] = 1.0  # the highest Q along row 0
+    image = action_image(np.zeros((20, 20, 3), np.uint8), q, 0, 5, 0.0, scale=2)
+    q_panel = image[:, 40:]
+    assert q_panel[-1, 20].sum() > q_panel[0, 20].sum()  # bright (yellow) at the bottom, dark on top
+    rows = np.nonzero(image[:, :40, 0] == 255)[0]  # the red ring of the action on the colour heightmap
+    assert rows.min() >= 30
