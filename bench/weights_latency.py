@@ -13,11 +13,11 @@ config; it polls every 2 ms and, when a new version arrives, validates and loads
 actor does before its next action), then appends `<version> <monotonic_ns>` to its report file.
 CLOCK_MONOTONIC is system-wide on Linux, so the times compare across processes.
 
-The same actors are served by three publishers in turn, each for `repeats` versions (ratios within one run):
+The same actors are served by three protocols, `repeats` versions each (ratios within one run):
 "fetch-fp32" announces only, so every actor fetches its own copy with a query (the protocol before the
 put); "push-fp32" puts each version once on weights/data; "push-bf16" does so with the body's convolutions
-in bf16 (common/weights_wire.py). Fetch runs first: actors that have seen a push wait a moment for the data
-before fetching an announced version.
+in bf16 (common/weights_wire.py). Fetch runs first, as a block: actors that have seen a push wait a moment
+for the data before fetching an announced version. The push modes then take turns version by version.
 
 Latency per version = the slowest actor's load time - the time publish_weights() was called (the learner's
 encoding, SHA-256 and puts included). Bytes per version = the growth of `bytes_acked` of this process's TCP
@@ -211,10 +211,11 @@ def measure_weights_latency(actors: int, repeats: int = 5, channels: int = 32, b
                             stdin=subprocess.DEVNULL))
                     _wait_all(paths, 0, start_timeout_s)  # connected, fetched the current version, loaded it
                     version = 0
-                    for mode in modes:
+                    for block in _blocks(modes):
                         publisher.close()
-                        publisher = WeightsPublisher(session, RUN_ID, *_publisher_args(mode))
-                        results[mode], version = _measure_mode(publisher, tensors, paths, version, repeats)
+                        publisher = WeightsPublisher(session, RUN_ID, *_publisher_args(block[0]))
+                        measured, version = _measure_block(publisher, block, tensors, paths, version, repeats)
+                        results.update(measured)
                 finally:
                     stop.touch()
                     for p in procs:
@@ -225,11 +226,18 @@ def measure_weights_latency(actors: int, repeats: int = 5, channels: int = 32, b
             if router is not None:
                 _stop(router, signal_first=True)
     last = results[modes[-1]]
-    return {"actors": actors, "repeats": repeats, "topology": topology, "fp32_weights_bytes": last["fp32_bytes"],
+    fp32_bytes = sum(t.numel() * 4 if t.is_floating_point() else t.numel() * t.element_size()
+                     for t in tensors.values())
+    return {"actors": actors, "repeats": repeats, "topology": topology, "fp32_tensor_bytes": fp32_bytes,
             "all_actors_ms_median": last["all_actors_ms_median"],
             "per_actor_ms_median": last["per_actor_ms_median"],
-            "publish_call_ms_median": last["publish_call_ms_median"],
-            "modes": {m: {k: v for k, v in r.items() if k != "fp32_bytes"} for m, r in results.items()}}
+            "publish_call_ms_median": last["publish_call_ms_median"], "modes": results}
+
+
+def _blocks(modes: tuple[str, ...]) -> list[tuple[str, ...]]:
+    """The fetch modes, then the push modes: each group is served by one publisher, its modes in turns."""
+    groups = [tuple(m for m in modes if not _publisher_args(m)[1]), tuple(m for m in modes if _publisher_args(m)[1])]
+    return [g for g in groups if g]
 
 
 def _publisher_args(mode: str) -> tuple[str, bool]:
@@ -238,33 +246,51 @@ def _publisher_args(mode: str) -> tuple[str, bool]:
     return dtype, protocol == "push"
 
 
-def _measure_mode(publisher: Any, tensors: dict, paths: list[Path], version: int,
-                  repeats: int) -> tuple[dict[str, Any], int]:
-    """`repeats` versions through one publisher; returns its medians and the last version published."""
-    all_ms, each_ms, publish_ms, sent = [], [], [], []
+def _measure_block(publisher: Any, modes: tuple[str, ...], tensors: dict, paths: list[Path], version: int,
+                   repeats: int) -> tuple[dict[str, dict[str, Any]], int]:
+    """`repeats` versions per mode through one publisher, the modes (same push, their own wire dtype) taking
+    turns version by version, so that a drift of the machine's load falls on each alike. Returns each mode's
+    medians and the last version published."""
+    samples: dict[str, dict[str, list]] = {m: {"all": [], "each": [], "call": [], "sent": [], "size": []}
+                                           for m in modes}
+    if publisher.push:
+        # Unmeasured: an actor's first pushed version may race its announcement (no push seen yet, so no
+        # wait for the data) and be fetched too, once in the actor's life; the rounds below are the steady state.
+        version += 1
+        publisher.publish_weights(version, tensors)
+        _wait_all(paths, version, 120.0)
     served_before = publisher.served
     for _ in range(repeats):
-        version += 1
-        time.sleep(0.5)  # let the previous round's work settle
-        before = bytes_out(os.getpid())
-        t0 = time.monotonic_ns()
-        announcement = publisher.publish_weights(version, tensors)
-        publish_ms.append((time.monotonic_ns() - t0) / 1e6)
-        reports = _wait_all(paths, version, 120.0)
-        after = bytes_out(os.getpid())
-        lat = [(r[version] - t0) / 1e6 for r in reports]
-        all_ms.append(max(lat))
-        each_ms.extend(lat)
-        if before is not None and after is not None:
-            sent.append(after - before)
-    fp32_bytes = sum(t.numel() * 4 if t.is_floating_point() else t.numel() * t.element_size()
-                     for t in tensors.values())
-    return {"weights_bytes": announcement.size_bytes, "fp32_bytes": fp32_bytes,
+        for mode in modes:
+            publisher.wire_dtype = _publisher_args(mode)[0]
+            version += 1
+            time.sleep(0.5)  # let the previous round's work settle
+            before = bytes_out(os.getpid())
+            t0 = time.monotonic_ns()
+            announcement = publisher.publish_weights(version, tensors)
+            call_ms = (time.monotonic_ns() - t0) / 1e6
+            reports = _wait_all(paths, version, 120.0)
+            after = bytes_out(os.getpid())
+            lat = [(r[version] - t0) / 1e6 for r in reports]
+            got = samples[mode]
+            got["all"].append(max(lat))
+            got["each"].extend(lat)
+            got["call"].append(call_ms)
+            got["size"].append(announcement.size_bytes)
+            if before is not None and after is not None:
+                got["sent"].append(after - before)
+    fetches = round((publisher.served - served_before) / (repeats * len(modes)), 2)
+    return {m: _summary(got, fetches) for m, got in samples.items()}, version
+
+
+def _summary(got: dict[str, list], fetches_per_version: float) -> dict[str, Any]:
+    size, sent = got["size"][-1], got["sent"]
+    return {"weights_bytes": size,
             "learner_bytes_out_per_version_median": int(statistics.median(sent)) if sent else None,
-            "copies_per_version": round(statistics.median(sent) / announcement.size_bytes, 2) if sent else None,
-            "fetches_per_version": round((publisher.served - served_before) / repeats, 2),
-            "all_actors_ms_median": _median(all_ms), "all_actors_ms": [round(v, 1) for v in all_ms],
-            "per_actor_ms_median": _median(each_ms), "publish_call_ms_median": _median(publish_ms)}, version
+            "copies_per_version": round(statistics.median(sent) / size, 2) if sent else None,
+            "fetches_per_version": fetches_per_version,
+            "all_actors_ms_median": _median(got["all"]), "all_actors_ms": [round(v, 1) for v in got["all"]],
+            "per_actor_ms_median": _median(got["each"]), "publish_call_ms_median": _median(got["call"])}
 
 
 def main(argv: list[str] | None = None) -> int:
