@@ -41,11 +41,11 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from romannet.common.episode_file import STEP_SCHEMA, STEP_TOPIC, TRANSITION_TOPIC
 from romannet.common.imagecodec import depth_m_to_units, encode_color_png
 from romannet.common.interfaces import Observation
-from romannet.common.wire import mcap_schema
+from romannet.common.wire import TransitionMsg, mcap_schema
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EpisodeRecorder", "colorize", "count_steps", "STEP_TOPIC", "TRANSITION_TOPIC"]
+__all__ = ["EpisodeRecorder", "colorize", "count_steps", "step_record", "STEP_TOPIC", "TRANSITION_TOPIC"]
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 _STEP_SCHEMA = json.dumps({"type": "object", "title": STEP_SCHEMA,
                            "description": "One executed action of an actor, with its outcome and policy state"})
@@ -74,6 +74,21 @@ def _plain(value: Any) -> Any:
     if isinstance(value, np.generic | np.ndarray):
         return value.tolist()
     raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
+def step_record(msg: TransitionMsg, position_m: list[float], detail: str = "",
+                q_ranges: dict[str, tuple[float, float]] | None = None,
+                info: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The /step JSON record of a step: its transition's fields, plus what a transition does not carry
+    (the action's robot-frame position, why it failed, the Q maps' colour scaling, the environment's info)."""
+    a = msg.action
+    return {"step": msg.step, "episode_id": msg.episode_id, "primitive": a.primitive, "row": a.row, "col": a.col,
+            "angle_rad": a.angle_rad, "q_value": a.q_value, "explored": a.explored, "position_m": position_m,
+            "success": msg.success, "progress_before": msg.progress_before, "progress_after": msg.progress_after,
+            "reward": msg.reward, "done": msg.done, "done_reason": msg.done_reason, "detail": detail,
+            "holding_before": msg.holding_before, "holding_after": msg.holding_after,
+            "weights_version": msg.policy_version, "explore_rate": msg.explore_rate, "q_ranges": q_ranges or {},
+            "info": info or {}}
 
 
 def _stamp(msg: Any, t_ns: int, frame_id: str) -> Any:

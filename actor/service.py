@@ -47,7 +47,7 @@ from romannet.common.model import RoManNet, state_dict_to_tensors
 from romannet.common.policy import InferenceEngine, PolicyMaps, decide
 from romannet.common.wire import TransitionMsg, encode_transition
 
-from .recorder import EpisodeRecorder
+from .recorder import EpisodeRecorder, step_record
 from .sender import Sender, spool_pause
 from .spool import Spool
 from .stats import ActorStats, write_status
@@ -420,34 +420,20 @@ class ActorLoop:
         if not result.done and not self.stop.is_set() and not self._last_action():
             self.swap_policy()
             following = self.decision(result.observation, rng)
-        sim_seed = result.info.get("seed")
-        msg = TransitionMsg(
-            actor_id=self.acfg.actor_id, episode_id=episode_id, step=step, start_ns=start_ns, end_ns=end_ns,
-            task=self.cfg.task.kind, color_before=obs.color_hm, depth_before=obs.depth_hm,
-            color_after=result.observation.color_hm, depth_after=result.observation.depth_hm, action=action,
-            success=bool(result.success), progress_before=float(result.progress_before),
-            progress_after=float(result.progress_after), reward=float(result.reward), done=bool(result.done),
-            done_reason=result.done_reason if result.done else "", holding_before=bool(obs.holding),
-            holding_after=bool(result.observation.holding), policy_version=version, explore_rate=rate,
+        msg = TransitionMsg.from_step(
+            obs, action, result, actor_id=self.acfg.actor_id, episode_id=episode_id, step=step,
+            start_ns=start_ns, end_ns=end_ns, task=self.cfg.task.kind, policy_version=version, explore_rate=rate,
             initial_priority=self.acfg.priority_for(result.reward),
-            sim_seed=int(sim_seed) if isinstance(sim_seed, int) and sim_seed >= 0 else None,
             next_value=following.value if following is not None else None,
             next_value_version=following.version if following is not None else None)
         data = encode_transition(msg)
         self.spool.put(data)  # durable before anything else: from here on it cannot be lost
         self.stats.record_action(action.primitive, result.success, version)
         if recorder is not None:
-            x, y, z = pixel_to_position(action.row, action.col, obs.depth_hm, self.cfg.workspace)
-            extras = {"step": step, "episode_id": episode_id, "primitive": action.primitive, "row": action.row,
-                      "col": action.col, "angle_rad": action.angle_rad, "q_value": action.q_value,
-                      "explored": action.explored, "position_m": [x, y, z], "success": result.success,
-                      "progress_before": result.progress_before, "progress_after": result.progress_after,
-                      "reward": result.reward, "done": result.done, "done_reason": result.done_reason,
-                      "detail": result.detail, "holding_before": obs.holding,
-                      "holding_after": result.observation.holding, "weights_version": version,
-                      "explore_rate": rate, "q_ranges": q_ranges, "info": result.info}
+            position_m = list(pixel_to_position(action.row, action.col, obs.depth_hm, self.cfg.workspace))
+            record = step_record(msg, position_m, result.detail, q_ranges, result.info)
             recorder.write_observation(result.observation, end_ns)
-            recorder.write_step(data, extras, end_ns)  # flushes the step's chunk, observation included
+            recorder.write_step(data, record, end_ns)  # flushes the step's chunk, observation included
         self.write_status()
         return action.primitive, result, following
 

@@ -1,8 +1,8 @@
 """The transitions `romannet bench replay` inserts: two named workloads of encoded 224x224 RGB-D transitions.
 
 - "sim": real simulator transitions. SimEnv (clutter task, Panda arm, 10 objects) steps the scripted oracle
-  for a few actions from a few seeds; each step's heightmaps before and after, its action, success,
-  progress and reward become one Transition, exactly as an actor would publish it. Rendered clean (the
+  for a few actions from a few seeds; each step becomes one Transition (TransitionMsg.from_step, as an
+  actor builds it). Rendered clean (the
   sim's default perfect depth sensor), so the PNGs compress well: the small, common case.
 - "camera_noise": synthetic tabletop scenes with camera-like noise on every pixel (sigma 3 levels of
   colour, 0.5 mm of depth), as a real RGB-D camera delivers them; noise defeats PNG compression, so these
@@ -24,6 +24,7 @@ from romannet.common import romannet_pb2 as pb
 from romannet.common import wire
 from romannet.common.action import Action
 from romannet.common.imagecodec import units_to_depth_m
+from romannet.common.interfaces import Observation, StepResult
 
 SIM_SEEDS = (0, 1, 2)
 SIM_STEPS_PER_SEED = 4
@@ -49,14 +50,12 @@ def camera_noise_scenes(scenes: int = 8, seed: int = 0) -> list[wire.TransitionM
     """`scenes` synthetic transitions (before and after are two different noisy scenes)."""
     out = []
     for k in range(scenes):
-        cb, db = synthetic_heightmaps(seed + 2 * k)
-        ca, da = synthetic_heightmaps(seed + 2 * k + 1)
-        out.append(wire.TransitionMsg(
-            actor_id=f"bench-{k}", episode_id="ep-0", step=0, start_ns=1, end_ns=2, task="clutter",
-            color_before=cb, depth_before=db, color_after=ca, depth_after=da,
-            action=Action("pick", 100, 120, 0.5, 0.7, explored=False), success=True, progress_before=0.1,
-            progress_after=0.2, reward=1.0, done=False, done_reason="", holding_before=False,
-            holding_after=True, policy_version=3, explore_rate=0.2))
+        before = Observation(*synthetic_heightmaps(seed + 2 * k), holding=False)
+        result = StepResult(Observation(*synthetic_heightmaps(seed + 2 * k + 1), holding=True), success=True,
+                            progress_before=0.1, progress_after=0.2, reward=1.0, done=False)
+        out.append(wire.TransitionMsg.from_step(
+            before, Action("pick", 100, 120, 0.5, 0.7, explored=False), result, actor_id=f"bench-{k}",
+            episode_id="ep-0", step=0, start_ns=1, end_ns=2, task="clutter", policy_version=3, explore_rate=0.2))
     return out
 
 
@@ -76,16 +75,10 @@ def sim_scenes(seed: int = 0, seeds: int = len(SIM_SEEDS), steps: int = SIM_STEP
                 action = oracle_action(env)
                 start_ns = time.time_ns()
                 result = env.step(action)
-                after = result.observation
-                out.append(wire.TransitionMsg(
-                    actor_id="bench-sim", episode_id=f"seed-{episode_seed}", step=step, start_ns=start_ns,
-                    end_ns=time.time_ns(), task="clutter", color_before=obs.color_hm, depth_before=obs.depth_hm,
-                    color_after=after.color_hm, depth_after=after.depth_hm, action=action,
-                    success=result.success, progress_before=result.progress_before,
-                    progress_after=result.progress_after, reward=result.reward, done=result.done,
-                    done_reason=result.done_reason, holding_before=obs.holding, holding_after=after.holding,
-                    policy_version=0, explore_rate=0.0, sim_seed=episode_seed))
-                obs = after
+                out.append(wire.TransitionMsg.from_step(
+                    obs, action, result, actor_id="bench-sim", episode_id=f"seed-{episode_seed}", step=step,
+                    start_ns=start_ns, end_ns=time.time_ns(), task="clutter"))  # sim_seed: the episode's seed
+                obs = result.observation
                 if result.done:
                     break
     return out
@@ -112,7 +105,3 @@ def distinct_payloads(scenes: list[wire.TransitionMsg], count: int) -> list[byte
         out.append(proto.SerializeToString())
     return out
 
-
-def encoded_transitions(count: int, scenes: int = 8, seed: int = 0) -> list[bytes]:
-    """`count` distinct encoded camera_noise transitions."""
-    return distinct_payloads(camera_noise_scenes(scenes, seed), count)

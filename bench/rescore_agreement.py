@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from romannet.actor.recorder import EpisodeRecorder
+from romannet.actor.recorder import EpisodeRecorder, step_record
 from romannet.actor.sim.env import SimEnv
 from romannet.actor.sim.oracle import oracle_action
-from romannet.common.action import Action
+from romannet.common.action import Action, pixel_to_position
 from romannet.common.config import Config, load_config
 from romannet.common.configbase import dumps_toml
 from romannet.common.episode_file import read_episode
@@ -61,16 +61,13 @@ def record(cfg: Config, path: Path, seed: int, random_share: float) -> int:
                 action = _random_action(env, rng) if rng.random() < random_share else oracle_action(env)
                 result = env.step(action)
                 t_ns += 10**9
-                msg = TransitionMsg(
-                    actor_id="bench", episode_id=f"ep{seed:06d}", step=step, start_ns=t_ns - 10**9, end_ns=t_ns,
-                    task=cfg.task.kind, color_before=obs.color_hm, depth_before=obs.depth_hm,
-                    color_after=result.observation.color_hm, depth_after=result.observation.depth_hm,
-                    action=action, success=bool(result.success), progress_before=result.progress_before,
-                    progress_after=result.progress_after, reward=result.reward, done=result.done,
-                    done_reason=result.done_reason if result.done else "", holding_before=obs.holding,
-                    holding_after=result.observation.holding, policy_version=0, explore_rate=random_share)
+                msg = TransitionMsg.from_step(obs, action, result, actor_id="bench", episode_id=f"ep{seed:06d}",
+                                              step=step, start_ns=t_ns - 10**9, end_ns=t_ns, task=cfg.task.kind,
+                                              explore_rate=random_share)
+                position_m = list(pixel_to_position(action.row, action.col, obs.depth_hm, cfg.workspace))
                 rec.write_observation(result.observation, t_ns)
-                rec.write_step(encode_transition(msg), {"step": step, "detail": result.detail}, t_ns)
+                rec.write_step(encode_transition(msg), step_record(msg, position_m, result.detail, info=result.info),
+                               t_ns)
                 obs, step = result.observation, step + 1
                 if result.done:
                     return step

@@ -149,10 +149,19 @@ def _parse(cls: type[_M], data: bytes) -> _M:
 
 
 # ------------------------------------------------------------------------------------------- Transition
+# The one mapping between TransitionMsg and pb.Transition (same field names), both directions. Heightmaps
+# are PNGs on the wire; the action is a nested message; the optional fields are unset when None.
+_SCALARS = (("actor_id", str), ("episode_id", str), ("task", str), ("step", int), ("start_ns", int),
+            ("end_ns", int), ("success", bool), ("progress_before", float), ("progress_after", float),
+            ("reward", float), ("done", bool), ("done_reason", str), ("holding_before", bool),
+            ("holding_after", bool), ("policy_version", int), ("explore_rate", float))
+_OPTIONAL = (("initial_priority", float), ("sim_seed", int))
+
+
 def _fill_transition(out: pb.Transition, msg: TransitionMsg) -> None:
     _set_version(out)
-    out.actor_id, out.episode_id, out.task = msg.actor_id, msg.episode_id, msg.task
-    out.step, out.start_ns, out.end_ns = int(msg.step), int(msg.start_ns), int(msg.end_ns)
+    for name, cast in _SCALARS:
+        setattr(out, name, cast(getattr(msg, name)))
     out.color_before_png = encode_color_png(msg.color_before)
     out.depth_before_png = encode_depth_png(msg.depth_before)
     out.color_after_png = encode_color_png(msg.color_after)
@@ -162,17 +171,27 @@ def _fill_transition(out: pb.Transition, msg: TransitionMsg) -> None:
     out.action.row, out.action.col = int(a.row), int(a.col)
     out.action.angle_rad, out.action.q_value = float(a.angle_rad), float(a.q_value)
     out.action.explored = bool(a.explored)
-    out.success, out.done, out.done_reason = bool(msg.success), bool(msg.done), msg.done_reason
-    out.progress_before, out.progress_after = float(msg.progress_before), float(msg.progress_after)
-    out.reward = float(msg.reward)
-    out.holding_before, out.holding_after = bool(msg.holding_before), bool(msg.holding_after)
-    out.policy_version, out.explore_rate = int(msg.policy_version), float(msg.explore_rate)
-    if msg.initial_priority is not None:
-        out.initial_priority = float(msg.initial_priority)
-    if msg.sim_seed is not None:
-        out.sim_seed = int(msg.sim_seed)
+    for name, cast in _OPTIONAL:
+        if getattr(msg, name) is not None:
+            setattr(out, name, cast(getattr(msg, name)))
     if msg.next_value is not None:
         out.next_value, out.next_value_version = float(msg.next_value), int(msg.next_value_version)
+
+
+def transition_msg(t: pb.Transition, primitive: str, color_before: np.ndarray, depth_before: np.ndarray,
+                   color_after: np.ndarray, depth_after: np.ndarray) -> TransitionMsg:
+    """The dataclass of a checked protobuf Transition (checked_primitive), its heightmaps decoded by the
+    caller: the replay server's validation passes placeholders, it keeps no decoded pixels."""
+    a = t.action
+    has_next = t.HasField("next_value") and t.HasField("next_value_version")
+    return TransitionMsg(
+        **{name: getattr(t, name) for name, _ in _SCALARS},
+        **{name: getattr(t, name) if t.HasField(name) else None for name, _ in _OPTIONAL},
+        color_before=color_before, depth_before=depth_before, color_after=color_after, depth_after=depth_after,
+        action=Action(primitive, a.row, a.col, a.angle_rad, a.q_value, a.explored),
+        next_value=t.next_value if has_next else None,
+        next_value_version=t.next_value_version if has_next else None,
+    )
 
 
 def encode_transition(msg: TransitionMsg) -> bytes:
@@ -182,7 +201,19 @@ def encode_transition(msg: TransitionMsg) -> bytes:
     return out.SerializeToString()
 
 
-def _check_png_sizes(t: pb.Transition, expected_shape: tuple[int, int] | None) -> None:
+def checked_primitive(t: pb.Transition) -> str:
+    """The checks of a parsed Transition before its pixels (schema version, required fields), and the name
+    of its action's primitive. Raises ValueError; the replay server's insert check runs the same."""
+    _check_version(t)
+    _require(t, _TRANSITION_REQUIRED)
+    _require(t.action, _ACTION_REQUIRED, "action.")
+    primitive = _PRIMITIVE_FROM_PB.get(t.action.primitive)
+    if primitive is None:
+        raise ValueError(f"action.primitive = {t.action.primitive} is invalid: must be PUSH, PICK or PLACE")
+    return primitive
+
+
+def check_png_sizes(t: pb.Transition, expected_shape: tuple[int, int] | None) -> None:
     """All four PNG headers agree on a valid size, read before any pixel is decompressed."""
     sizes = {}
     for name, _ in _PNGS:
@@ -199,39 +230,14 @@ def _check_png_sizes(t: pb.Transition, expected_shape: tuple[int, int] | None) -
 
 
 def _transition_from_pb(t: pb.Transition, expected_shape: tuple[int, int] | None) -> TransitionMsg:
-    _check_version(t)
-    _require(t, _TRANSITION_REQUIRED)
-    _require(t.action, _ACTION_REQUIRED, "action.")
-    primitive = _PRIMITIVE_FROM_PB.get(t.action.primitive)
-    if primitive is None:
-        raise ValueError(f"action.primitive = {t.action.primitive} is invalid: must be PUSH, PICK or PLACE")
-    _check_png_sizes(t, expected_shape)
+    primitive = checked_primitive(t)
+    check_png_sizes(t, expected_shape)
     images = {}
     for name, decode_png in _PNGS:
         with _within(name):
             images[name] = decode_png(getattr(t, name))
     return transition_msg(t, primitive, images["color_before_png"], images["depth_before_png"],
                           images["color_after_png"], images["depth_after_png"])
-
-
-def transition_msg(t: pb.Transition, primitive: str, color_before: np.ndarray, depth_before: np.ndarray,
-                   color_after: np.ndarray, depth_after: np.ndarray) -> TransitionMsg:
-    """The one mapping from a checked protobuf Transition to the dataclass (the heightmaps decoded by the
-    caller: the replay server's validation passes placeholders, it keeps no decoded pixels)."""
-    a = t.action
-    has_next = t.HasField("next_value") and t.HasField("next_value_version")
-    return TransitionMsg(
-        actor_id=t.actor_id, episode_id=t.episode_id, step=t.step, start_ns=t.start_ns, end_ns=t.end_ns,
-        task=t.task, color_before=color_before, depth_before=depth_before, color_after=color_after,
-        depth_after=depth_after, action=Action(primitive, a.row, a.col, a.angle_rad, a.q_value, a.explored),
-        success=t.success, progress_before=t.progress_before, progress_after=t.progress_after,
-        reward=t.reward, done=t.done, done_reason=t.done_reason, holding_before=t.holding_before,
-        holding_after=t.holding_after, policy_version=t.policy_version, explore_rate=t.explore_rate,
-        initial_priority=t.initial_priority if t.HasField("initial_priority") else None,
-        sim_seed=t.sim_seed if t.HasField("sim_seed") else None,
-        next_value=t.next_value if has_next else None,
-        next_value_version=t.next_value_version if has_next else None,
-    )
 
 
 @_decoder("Transition", _MAX_TRANSITION_BYTES)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -29,6 +29,9 @@ from .wire_validate import (
     check_text,
     check_token,
 )
+
+if TYPE_CHECKING:  # interfaces imports this module: the constructor below only reads their attributes
+    from .interfaces import Observation, StepResult
 
 REWARD_LIMIT = 10.0  # |reward| bound: W(phi) <= 10 (config) times X, P <= 1
 MAX_BATCH_ITEMS = 4096  # transitions in one sample request / batch
@@ -111,6 +114,25 @@ class TransitionMsg:
         if self.next_value is not None:
             check_float("next_value", self.next_value)
             check_int("next_value_version", self.next_value_version, 0, UINT64_MAX)
+
+    @classmethod
+    def from_step(cls, before: Observation, action: Action, result: StepResult, *, actor_id: str,
+                  episode_id: str, step: int, start_ns: int, end_ns: int, task: str, policy_version: int = 0,
+                  explore_rate: float = 0.0, initial_priority: float | None = None,
+                  next_value: float | None = None, next_value_version: int | None = None) -> TransitionMsg:
+        """The transition of one executed step: the observation the action was chosen in, the action and
+        the environment's result. sim_seed is the scene seed a simulator reports in result.info["seed"]."""
+        after, seed = result.observation, result.info.get("seed")
+        return cls(
+            actor_id=actor_id, episode_id=episode_id, step=step, start_ns=start_ns, end_ns=end_ns, task=task,
+            color_before=before.color_hm, depth_before=before.depth_hm, color_after=after.color_hm,
+            depth_after=after.depth_hm, action=action, success=bool(result.success),
+            progress_before=float(result.progress_before), progress_after=float(result.progress_after),
+            reward=float(result.reward), done=bool(result.done), done_reason=result.done_reason if result.done else "",
+            holding_before=bool(before.holding), holding_after=bool(after.holding), policy_version=policy_version,
+            explore_rate=explore_rate, initial_priority=initial_priority,
+            sim_seed=int(seed) if isinstance(seed, int) and seed >= 0 else None,
+            next_value=next_value, next_value_version=next_value_version)
 
     @property
     def shape(self) -> tuple[int, int]:

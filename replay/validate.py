@@ -29,11 +29,6 @@ from romannet.common.imagecodec import check_png_chunks, check_png_pixels, read_
 # (field, bit depth, PNG colour type): color is 8-bit RGB (type 2), depth 16-bit grayscale (type 0).
 _PNG_FORMATS = (("color_before_png", 8, 2), ("depth_before_png", 16, 0),
                 ("color_after_png", 8, 2), ("depth_after_png", 16, 0))
-# The wire decoder's own checks, reused so both paths refuse the same things with the same messages.
-# (Private names of common/wire.py: a `pixels=False` option there would be the cleaner home for this.)
-_check_version = wire._check_version
-_require = wire._require
-_check_png_sizes = wire._check_png_sizes
 
 
 def _placeholders(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
@@ -58,15 +53,10 @@ def check_transition(data: bytes, expected_shape: tuple[int, int] | None = None,
             t.ParseFromString(data)
         except Exception as exc:
             raise ValueError(f"not a protobuf Transition message ({exc})") from exc
-        _check_version(t)
-        _require(t, wire._TRANSITION_REQUIRED)
-        _require(t.action, wire._ACTION_REQUIRED, "action.")
-        primitive = wire._PRIMITIVE_FROM_PB.get(t.action.primitive)
-        if primitive is None:
-            raise ValueError(f"action.primitive = {t.action.primitive} is invalid: must be PUSH, PICK or PLACE")
+        primitive = wire.checked_primitive(t)  # the wire decoder's checks: same refusals, same messages
         # Each read of a bytes field copies it out of the parsed message: read each PNG once.
         pngs = {name: getattr(t, name) for name, _, _ in _PNG_FORMATS}
-        _check_png_sizes(SimpleNamespace(**pngs), expected_shape)
+        wire.check_png_sizes(SimpleNamespace(**pngs), expected_shape)  # type: ignore[arg-type]
         for name, bit_depth, color_type in _PNG_FORMATS:
             png = pngs[name]
             got = read_png_header(png)[2:]

@@ -15,7 +15,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from mcap.reader import NonSeekingReader, make_reader
 
-from romannet.actor.recorder import TRANSITION_TOPIC, EpisodeRecorder, colorize, count_steps
+from romannet.actor.recorder import TRANSITION_TOPIC, EpisodeRecorder, colorize, count_steps, step_record
 from romannet.common.interfaces import Observation
 from romannet.common.wire import decode_transition, encode_transition
 
@@ -154,3 +154,24 @@ def test_colorize_handles_flat_and_nonfinite_maps() -> None:
     assert img.shape == (2, 2, 3) and img.dtype == np.uint8 and (lo, hi) == (0.0, 1.0)
     img, lo, hi = colorize(np.full((3, 3), 2.0, np.float32))
     assert (lo, hi) == (2.0, 2.0) and len({tuple(p) for p in img.reshape(-1, 3)}) == 1
+
+
+def test_the_step_record_repeats_its_transition_and_adds_what_a_transition_lacks(tmp_path: Path) -> None:
+    msg = tr(4, episode="ep000003", actor="a0", size=H)
+    record = step_record(msg, [0.5, -0.1, 0.02], "nothing_grasped", {"pick": (0.0, 1.0)}, {"seed": 9})
+    a = msg.action
+    assert (record["step"], record["episode_id"], record["primitive"], record["row"], record["col"]) == \
+        (4, "ep000003", a.primitive, a.row, a.col)
+    for name in ("success", "progress_before", "progress_after", "reward", "done", "done_reason",
+                 "holding_before", "holding_after", "explore_rate"):
+        assert record[name] == getattr(msg, name), name
+    assert record["weights_version"] == msg.policy_version and record["q_value"] == a.q_value
+    assert (record["position_m"], record["detail"], record["q_ranges"], record["info"]) == \
+        ([0.5, -0.1, 0.02], "nothing_grasped", {"pick": (0.0, 1.0)}, {"seed": 9})
+    # Written and read back as the JSON of the /step channel.
+    rec = EpisodeRecorder(tmp_path / "ep.mcap", {"run_id": "r1", "actor_id": "a0"}, record_camera=False)
+    rec.write_step(encode_transition(msg), record, 5_000)
+    rec.close()
+    with open(tmp_path / "ep.mcap", "rb") as f:
+        steps = [json.loads(m.data) for _, c, m in make_reader(f).iter_messages() if c.topic == "/step"]
+    assert steps == [{**record, "q_ranges": {"pick": [0.0, 1.0]}}]

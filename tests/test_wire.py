@@ -24,6 +24,7 @@ import romannet.common
 from romannet.common import wire
 from romannet.common.action import Action
 from romannet.common.errors import DecodeError
+from romannet.common.interfaces import Observation, StepResult
 
 COMMON_DIR = Path(romannet.common.__file__).parent
 
@@ -52,6 +53,29 @@ def test_transition_optional_fields_round_trip_as_none() -> None:
     back = wire.decode_transition(wire.encode_transition(msg))
     assert_transitions_equal(back, msg)
     assert back.initial_priority is None and back.sim_seed is None
+
+
+def test_a_transition_is_built_from_the_observation_the_action_and_the_step_result() -> None:
+    color_b, depth_b = heightmaps(8, 8, 1)
+    color_a, depth_a = heightmaps(8, 8, 2)
+    action = Action("pick", 3, 4, 0.5, np.float32(0.25), explored=True)
+    result = StepResult(Observation(color_a, depth_a, True), np.bool_(True), 0.25, np.float64(0.5), 0.5,
+                        done=False, done_reason="", detail="", info={"seed": 17, "step": 3})
+    msg = wire.TransitionMsg.from_step(Observation(color_b, depth_b, False), action, result, actor_id="a0",
+                                       episode_id="ep000001", step=2, start_ns=10, end_ns=20, task="stacking",
+                                       policy_version=4, explore_rate=0.1, next_value=0.7, next_value_version=4)
+    assert (msg.color_before, msg.depth_before, msg.color_after, msg.depth_after) == (color_b, depth_b, color_a, depth_a)
+    assert (msg.success, msg.progress_before, msg.progress_after, msg.reward) == (True, 0.25, 0.5, 0.5)
+    assert type(msg.success) is bool and type(msg.progress_after) is float  # plain Python values
+    assert (msg.holding_before, msg.holding_after, msg.done, msg.done_reason) == (False, True, False, "")
+    assert (msg.sim_seed, msg.initial_priority, msg.next_value, msg.next_value_version) == (17, None, 0.7, 4)
+    assert_transitions_equal(wire.decode_transition(wire.encode_transition(msg)), msg)
+    # A real robot reports no scene seed; an episode's end carries its reason.
+    robot = StepResult(Observation(color_a, depth_a, False), False, 0.5, 0.5, 0.0, True, "robot_stopped",
+                       "protective_stop", {"episode_seed": 3})
+    ended = wire.TransitionMsg.from_step(Observation(color_b, depth_b, True), action, robot, actor_id="ur",
+                                         episode_id="ep000002", step=0, start_ns=0, end_ns=0, task="stacking")
+    assert (ended.sim_seed, ended.done, ended.done_reason, ended.success) == (None, True, "robot_stopped", False)
 
 
 @pytest.mark.parametrize("name", sorted(all_messages()))

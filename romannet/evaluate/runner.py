@@ -183,15 +183,9 @@ class Worker:
             result = env.step(action)
             steps.append(StepLog(action.primitive, bool(result.success)))
             if trainer is not None and self.engine is not None:
-                msg = TransitionMsg(
-                    actor_id="eval", episode_id=f"{spec.case}-{spec.seed}", step=step, start_ns=t0,
-                    end_ns=max(t0, time.time_ns()), task=spec.task, color_before=obs.color_hm,
-                    depth_before=obs.depth_hm, color_after=result.observation.color_hm,
-                    depth_after=result.observation.depth_hm, action=action, success=bool(result.success),
-                    progress_before=float(result.progress_before), progress_after=float(result.progress_after),
-                    reward=float(result.reward), done=bool(result.done),
-                    done_reason=result.done_reason if result.done else "", holding_before=bool(obs.holding),
-                    holding_after=bool(result.observation.holding), policy_version=0, explore_rate=0.0)
+                msg = TransitionMsg.from_step(obs, action, result, actor_id="eval",
+                                              episode_id=f"{spec.case}-{spec.seed}", step=step, start_ns=t0,
+                                              end_ns=max(t0, time.time_ns()), task=spec.task)
                 trainer.train_step([(msg, 1.0, 0)])
                 self.engine.load_state(trainer.state_tensors())
             if result.done:
