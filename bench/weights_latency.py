@@ -48,6 +48,9 @@ log = logging.getLogger(__name__)
 RUN_ID = "bench-weights"
 MODES = ("fetch-fp32", "push-fp32", "push-bf16")
 _POLL_S = 0.002
+# Longer than an actor's default 10 s: eight 23 MB fetches through one router on a busy 2-core box can
+# take more, and a failed fetch would leave the fetch-only protocol's version undelivered.
+_FETCH_TIMEOUT_S = 120.0
 _SOCKET = re.compile(r"pid=(\d+),")
 _ACKED = re.compile(r"bytes_acked:(\d+)")
 
@@ -68,7 +71,8 @@ def _light_actor(connect: str, mode: str, report: Path, stop: Path, channels: in
     config.insert_json5("mode", json.dumps(mode))
     deadline = time.monotonic() + timeout_s
     with open_session(config) as session, \
-            ZenohWeightsSource(session, RUN_ID, validate=lambda t: validate_tensors(model, t)) as source, \
+            ZenohWeightsSource(session, RUN_ID, fetch_timeout_s=_FETCH_TIMEOUT_S,
+                               validate=lambda t: validate_tensors(model, t)) as source, \
             report.open("a") as out:
         while not stop.exists() and time.monotonic() < deadline:
             got = source.poll_weights()
@@ -316,8 +320,11 @@ def main(argv: list[str] | None = None) -> int:
         _light_actor(args.connect, args.mode, args.report, args.stop, args.channels, args.blocks, args.timeout_s)
         return 0
     logging.basicConfig(level=logging.INFO, stream=sys.stderr)
-    results = [measure_weights_latency(n, args.repeats, args.channels, args.blocks, args.topology,
-                                       tuple(args.modes)) for n in args.actors]
+    results = []
+    for n in args.actors:
+        results.append(measure_weights_latency(n, args.repeats, args.channels, args.blocks, args.topology,
+                                               tuple(args.modes)))
+        log.info("%d actor(s): %s", n, json.dumps(results[-1]))  # kept if a later size fails
     sys.stdout.write(json.dumps(results if args.json else results[-1]) + "\n")
     return 0
 
