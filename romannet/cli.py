@@ -134,7 +134,25 @@ def cmd_learner(args: argparse.Namespace) -> int:
 def cmd_actor(args: argparse.Namespace) -> int:
     from romannet.actor.main import run
 
-    return run(args)
+    if getattr(args, "foxglove", None) is None:
+        return run(args)
+    # The live view follows the episode files this actor writes, on a thread of its own: the decision path
+    # is untouched, and with no client connected a poll reads a few record headers.
+    from pathlib import Path
+
+    from romannet.actor.main import resolve_actor_config
+    from romannet.actor.service import ActorPaths
+    from romannet.common.config import load_config
+    from romannet.mcaptools.live import start_live_view
+
+    acfg = resolve_actor_config(load_config(args.config, args.overrides), args)
+    folder = ActorPaths.of(Path(args.run_dir), acfg).episodes
+    view = start_live_view(lambda: {acfg.actor_id: folder}, args.foxglove, args.foxglove_host,
+                           f"actor {acfg.actor_id}")
+    try:
+        return run(args)
+    finally:
+        view.close()
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -298,6 +316,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop after N actions (default: the config's actor.max_actions; 0 = no limit)")
     p.add_argument("--episodes", type=int, default=None, metavar="N",
                    help="stop after N finished episodes (default: the config's actor.episodes; 0 = no limit)")
+    p.add_argument("--foxglove", type=int, metavar="PORT", help="serve this actor's camera, heightmaps, Q maps and "
+                   "chosen action live to the Foxglove app on PORT (topics /<actor-id>/...; 0: any free port)")
+    p.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
+                   help="address the live view binds (default 127.0.0.1; 0.0.0.0 for other machines)")
     p.add_argument("--robot", choices=("sim", "ur"), default="sim",
                    help="sim: the PyBullet simulator (default); ur: a Universal Robots arm through ur_rtde "
                         "(the [robot] config section; pip install 'romannet[robot]')")

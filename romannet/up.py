@@ -101,6 +101,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="seconds each stage may take to stop cleanly before SIGKILL (default: 60)")
     p.add_argument("--progress-every", type=float, default=30.0, metavar="S",
                    help="seconds between progress lines when stderr is not a terminal (default: 30)")
+    p.add_argument("--foxglove", type=int, metavar="PORT", help="serve every actor's camera, heightmaps, Q maps "
+                   "and chosen action live to the Foxglove app on PORT (topics /<actor-id>/...; 0: any free port)")
+    p.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
+                   help="address the live view binds (default 127.0.0.1; 0.0.0.0 for other machines)")
 
 
 def split_actions(total: int, actors: int) -> list[int]:
@@ -290,6 +294,12 @@ def run(args: argparse.Namespace) -> int:
         log.info("run %s already has %d actions (--max-actions %d): nothing to do; raise --max-actions to "
                  "train on", run_dir.name, ledger.start_total(), args.max_actions)
         return 0
+    live = None
+    if getattr(args, "foxglove", None) is not None:  # a thread of the launcher reading the files actors write
+        from romannet.mcaptools.live import run_folders, start_live_view
+
+        live = start_live_view(run_folders(run_dir / "episodes"), args.foxglove, args.foxglove_host,
+                               f"run {run_dir.name}")
     file_handler = _attach_log_file(run_dir / "launcher.log")
     display = Progress("up", total=args.max_actions or None, unit="actions", log_every_s=args.progress_every,
                        redraw_s=1.0)
@@ -358,6 +368,8 @@ def run(args: argparse.Namespace) -> int:
         for h in console:
             h.removeFilter(clear)
         report.close()  # after the actors stopped: the curves end with every recorded action
+        if live is not None:
+            live.close()
     _summary(run_dir, progress.snapshot(), final, sup, outcome, time.monotonic() - started, ledger.start_total(),
              first_update)
     log.info("curves of run %s: %s (what the robot did), %s (the learner); live: tensorboard --logdir %s",

@@ -13,6 +13,8 @@ EXAMPLES = {
     "inspect": "romannet mcap inspect runs/demo/episodes --json",
     "play": ("romannet mcap play runs/demo/episodes/actor-0/ep000000.mcap --foxglove 8765 --speed 2\n"
              "  romannet mcap play ep000000.mcap --zenoh --speed 0 --connect tcp/127.0.0.1:7447"),
+    "live": ("romannet mcap live runs/demo/episodes --foxglove 8765\n"
+             "  romannet mcap live runs/demo/episodes/actor-0 --foxglove 8765 --foxglove-host 0.0.0.0"),
     "feed": "romannet mcap feed runs/demo/episodes --run-id offline-1 --connect tcp/127.0.0.1:7447",
     "export": ("romannet mcap export runs/demo/episodes/actor-0/ep000000.mcap --video ep0.mp4\n"
                "  romannet mcap export ep000000.mcap --frames frames/ --size 224"),
@@ -22,6 +24,12 @@ EXAMPLES = {
 }
 SUMMARY = ("episode files (MCAP): inspect them, play them to Foxglove or Zenoh, feed them to a replay server, "
            "export video, rescore them under another reward; format in docs/recording.md")
+
+
+def _foxglove_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--foxglove", type=int, metavar="PORT", help="serve a Foxglove WebSocket on PORT (0: any free)")
+    p.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
+                   help="address the Foxglove server binds (default 127.0.0.1; 0.0.0.0 for other machines)")
 
 
 def _zenoh_args(p: argparse.ArgumentParser) -> None:
@@ -71,9 +79,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--max-gap", type=float, default=5.0, metavar="S",
                    help="shorten pauses in the recording to at most S seconds (default: 5)")
     t.add_argument("--loop", action="store_true", help="play again from the start until Ctrl-C")
-    t.add_argument("--foxglove", type=int, metavar="PORT", help="serve a Foxglove WebSocket on PORT (0: any free)")
-    t.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
-                   help="address the Foxglove server binds (default 127.0.0.1; 0.0.0.0 for other machines)")
+    _foxglove_args(t)
     t.add_argument("--wait-client", type=float, default=60.0, metavar="S",
                    help="with --foxglove: wait up to S s for the app to subscribe before playing (-1: "
                         "until it does, 0: do not wait; default: 60)")
@@ -83,6 +89,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--zenoh-wait", type=float, default=2.0, metavar="S",
                    help="with --zenoh: wait up to S s for a subscriber to match before playing (default: 2)")
     _zenoh_args(t)
+
+    t = tool("live", "serve the episodes being written to the Foxglove app, live: a run's episodes/ directory "
+             "(every actor, on /<actor_id>/<topic>) or one actor's folder; until Ctrl-C")
+    t.add_argument("folder", metavar="DIR", help="<run>/episodes, or <run>/episodes/<actor_id>")
+    _foxglove_args(t)
 
     t = tool("feed", "send the recorded transitions to a running replay server, acknowledged, with a progress "
              "bar; feeding the same files again adds nothing (idempotent keys). A file that is not an episode "
@@ -131,6 +142,10 @@ def run(args: argparse.Namespace) -> int:
         from .play import run_play
 
         return run_play(args)
+    if args.tool == "live":
+        from .live import run_live
+
+        return run_live(args)
     if args.tool == "feed":
         from .feed import run_feed
 

@@ -1,5 +1,8 @@
 """`romannet mcap play FILE`: an episode played back in recorded order and time to Foxglove and/or Zenoh.
 
+With --foxglove the server keeps serving after the last message until Ctrl-C (the app shows what arrived
+only while it is connected); Zenoh-only playback ends with the episode.
+
 The file is scanned once for its channels (so every channel is advertised before the first message, and
 a truncated file is reported up front), then played: each message is sent when its recorded log time,
 divided by --speed, has passed since the first message (--speed 0: no waiting). A pause longer than
@@ -101,8 +104,9 @@ def _sinks(args: argparse.Namespace, reader: EpisodeReader, stop: threading.Even
         if args.foxglove is not None:
             fsink = FoxgloveSink(channels, args.foxglove, host=args.foxglove_host)
             stack.callback(fsink.close)
-            log.info("Foxglove WebSocket server on ws://%s:%d: open it in the Foxglove app (Open connection -> "
-                     "Foxglove WebSocket), or %s", args.foxglove_host, fsink.port, fsink.app_url())
+            log.info("Foxglove WebSocket server on ws://%s:%d (protocols foxglove.sdk.v1 and "
+                     "foxglove.websocket.v1): open it in the Foxglove app (Open connection -> Foxglove WebSocket), "
+                     "or %s", args.foxglove_host, fsink.port, fsink.app_url())
             if args.wait_client != 0:
                 timeout = None if args.wait_client < 0 else args.wait_client
                 log.info("waiting for a Foxglove client to subscribe%s (Ctrl-C to stop)",
@@ -126,6 +130,11 @@ def run_play(args: argparse.Namespace) -> int:
     with stop_on_signals(stop, "stopping the playback"), _sinks(args, reader, stop) as sinks:
         started = time.monotonic()
         sent = 0 if stop.is_set() else play(args.file, sinks, opts, stop, total)
+        if args.foxglove is not None and not stop.is_set():
+            # The app keeps its panels and lets a person scrub what arrived only while the connection lives.
+            log.info("played all %d messages; still serving Foxglove on port %d until Ctrl-C", sent,
+                     next(s.port for s in sinks if isinstance(s, FoxgloveSink)))
+            stop.wait()
     sys.stdout.write(f"played {sent} of {total} messages of {args.file} in {time.monotonic() - started:.1f} s"
                      f"{' (stopped)' if stop.is_set() else ''}\n")
     return 0 if sent >= total or opts.loop else 1

@@ -1,7 +1,8 @@
 """Where `romannet mcap play` sends recorded messages: a Foxglove WebSocket server and/or Zenoh.
 
-FoxgloveSink: a live Foxglove WebSocket server (the `foxglove-sdk` package) advertising every channel of
-the episode with the schema recorded in the file, so the Foxglove app decodes the images and the
+FoxgloveSink: a live Foxglove WebSocket server (foxglove_server.py: the `foxglove-sdk` package behind a
+front that speaks every protocol version the app offers) advertising every channel of the episode with the
+schema recorded in the file, so the Foxglove app decodes the images and the
 Transition exactly as when it opens the file; the server announces each message's recorded time (Time
 capability), so the app's clock follows the recording.
 
@@ -18,12 +19,11 @@ import logging
 import threading
 import time
 from collections.abc import Iterable
-from typing import Any, Protocol
+from typing import Protocol
 
 import zenoh
 
 from romannet.common.episode_file import ChannelInfo, RecordedMessage
-from romannet.common.errors import RomannetError
 from romannet.common.keys import RunKeys
 
 log = logging.getLogger(__name__)
@@ -37,79 +37,33 @@ class Sink(Protocol):
     def close(self) -> None: ...
 
 
-class _Subscriptions:
-    """foxglove.websocket.ServerListener: notes that some client subscribed to some channel."""
-
-    def __init__(self) -> None:
-        self.first = threading.Event()
-        self.count = 0
-
-    def on_subscribe(self, client: Any, channel: Any) -> None:
-        self.count += 1
-        log.info("Foxglove client %s subscribed to %s", client.id, channel.topic)
-        self.first.set()
-
-    def on_unsubscribe(self, client: Any, channel: Any) -> None:
-        log.debug("Foxglove client %s unsubscribed from %s", client.id, channel.topic)
-
-
-def foxglove_start_error(host: str, port: int, text: str) -> str:
-    """One line for a Foxglove server that could not start (text: the SDK's error)."""
-    if "Address already in use" in text:
-        return (f"cannot serve Foxglove on {host}:{port}: the port is already in use (another process listens "
-                "there: stop it or choose another --foxglove port)")
-    return f"cannot serve Foxglove on {host}:{port}: {text.removeprefix('FoxgloveError: ')}"
-
-
 class FoxgloveSink:
-    """A Foxglove WebSocket server on host:port (port 0: any free port, see .port)."""
+    """A Foxglove WebSocket server on host:port (port 0: any free port, see .port) with every channel of
+    the episode advertised (foxglove_server.FoxgloveServer: every protocol version the app speaks)."""
 
     def __init__(self, channels: Iterable[ChannelInfo], port: int, host: str = "127.0.0.1",
                  name: str = "romannet mcap play"):
-        import foxglove  # imported here: only `play --foxglove` needs the SDK
-        from foxglove.websocket import Capability
+        from .foxglove_server import FoxgloveServer  # imported here: only `play --foxglove` needs the SDK
 
-        self._context = foxglove.Context()
-        self._listener = _Subscriptions()
-        try:
-            self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
-                                                 capabilities=[Capability.Time], server_listener=self._listener)
-        except RuntimeError as exc:  # the SDK's FoxgloveError, e.g. "Failed to bind port: Address already in use"
-            raise RomannetError(foxglove_start_error(host, port, str(exc))) from None
-        self._channels = {}
+        self.server = FoxgloveServer(port, host=host, name=name)
         for c in channels:
-            schema = foxglove.Schema(name=c.schema_name, encoding=c.schema_encoding, data=c.schema_data)
-            self._channels[c.topic] = foxglove.Channel(c.topic, schema=schema, message_encoding=c.message_encoding,
-                                                       context=self._context, metadata=dict(c.metadata))
+            self.server.add_channel(c.topic, c)
 
     @property
     def port(self) -> int:
-        return int(self._server.port)
+        return self.server.port
 
     def app_url(self) -> str:
-        return self._server.app_url() or f"ws://127.0.0.1:{self.port}"
+        return self.server.app_url()
 
     def wait_for_client(self, timeout_s: float | None, stop: threading.Event, grace_s: float = 1.0) -> bool:
-        """Wait until a client subscribes to a channel (then `grace_s` more for its other subscriptions);
-        False after timeout_s (None: until stop) without one."""
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        while not self._listener.first.wait(_POLL_S * 5):
-            if stop.is_set() or (deadline is not None and time.monotonic() > deadline):
-                return False
-        stop.wait(grace_s)
-        return True
+        return self.server.wait_for_client(timeout_s, stop, grace_s)
 
     def send(self, msg: RecordedMessage) -> None:
-        channel = self._channels.get(msg.topic)
-        if channel is None:  # a channel the pre-scan did not see cannot appear; be safe anyway
-            return
-        self._server.broadcast_time(msg.log_time_ns)
-        channel.log(msg.data, log_time=msg.log_time_ns)
+        self.server.log(msg.topic, msg.data, msg.log_time_ns)
 
     def close(self) -> None:
-        for channel in self._channels.values():
-            channel.close()
-        self._server.stop()
+        self.server.close()
 
 
 def encoding_of(channel: ChannelInfo) -> zenoh.Encoding:
