@@ -8,6 +8,8 @@ Channels (topic: schema, message encoding):
     /heightmap/depth    foxglove.RawImage 16UC1, units of 1e-5 m heights above the workspace floor
     /q/<primitive>      foxglove.CompressedImage png             Q map of each net that ran, JET colormap,
                                                                  scaled min..max (the range is in /step)
+    /tf                 foxglove.FrameTransforms                 world->camera, world->heightmap (scene_frames.py)
+    /camera/calibration foxglove.CameraCalibration               the camera's intrinsics (simulated camera)
     /transition         romannet.v1.Transition (protobuf)        the executed step, as sent to replay
     /step               JSON (jsonschema)                        action, pose, X, P, reward, done reason,
                                                                  holding, weights version, LAE rate, ...
@@ -42,6 +44,8 @@ from romannet.common.episode_file import STEP_SCHEMA, STEP_TOPIC, TRANSITION_TOP
 from romannet.common.imagecodec import depth_m_to_units, encode_color_png
 from romannet.common.interfaces import Observation
 from romannet.common.wire import TransitionMsg, mcap_schema
+
+from .scene_frames import SceneFrames, frame_messages
 
 log = logging.getLogger(__name__)
 
@@ -102,12 +106,13 @@ class EpisodeRecorder:
 
     def __init__(self, path: str | Path, metadata: dict[str, str], config_toml: str = "",
                  chunk_bytes: int = 1 << 20, compression: str = "zstd", record_camera: bool = True,
-                 camera_color_format: str = "jpeg", jpeg_quality: int = 90):
+                 camera_color_format: str = "jpeg", jpeg_quality: int = 90, scene: SceneFrames | None = None):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.record_camera = record_camera
         self.camera_color_format = camera_color_format
         self.jpeg_quality = int(jpeg_quality)
+        self.scene = scene  # the frames, with every observation: a client joining mid-episode gets them too
         self.steps = 0
         self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close(), which callers run in finally
         self._closed = False
@@ -156,6 +161,8 @@ class EpisodeRecorder:
         """Both heightmaps and (if recorded and present) the camera frame, stamped t_ns (ns since epoch)."""
         self._compressed("/heightmap/color", encode_color_png(obs.color_hm, level=1), "png", t_ns, "heightmap")
         self._raw16("/heightmap/depth", depth_m_to_units(obs.depth_hm), t_ns, "heightmap")
+        for topic, msg in frame_messages(self.scene, t_ns) if self.scene is not None else ():
+            self._write(topic, msg, t_ns)
         if not self.record_camera:
             return
         if obs.camera_color is not None:

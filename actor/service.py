@@ -48,6 +48,7 @@ from romannet.common.policy import InferenceEngine, PolicyMaps, decide
 from romannet.common.wire import TransitionMsg, encode_transition
 
 from .recorder import EpisodeRecorder, step_record
+from .scene_frames import scene_frames_of
 from .sender import Sender, spool_pause
 from .spool import Spool
 from .stats import ActorStats, write_status
@@ -339,7 +340,8 @@ class ActorLoop:
                  "initial_weights": self.stats.initial_weights, "explore_rate_start": self.stats.explore_rate,
                  "romannet_version": __version__},
                 self.config_toml, self.acfg.mcap_chunk_bytes, self.acfg.mcap_compression,
-                self.acfg.record_camera, self.acfg.camera_color_format, self.acfg.jpeg_quality)
+                self.acfg.record_camera, self.acfg.camera_color_format, self.acfg.jpeg_quality,
+                scene=scene_frames_of(self.env, self.cfg))
         done_reason, ep_picks, ep_actions = "stopped", 0, 0
         try:
             if recorder is not None:

@@ -75,6 +75,7 @@ TRANSITION_SCHEMA = "romannet.v1.Transition"
 STEP_SCHEMA = "romannet.actor.Step"
 # (schema name, schema encoding) of every channel an episode file may hold.
 KNOWN_SCHEMAS = frozenset({("foxglove.CompressedImage", "protobuf"), ("foxglove.RawImage", "protobuf"),
+                           ("foxglove.FrameTransforms", "protobuf"), ("foxglove.CameraCalibration", "protobuf"),
                            (TRANSITION_SCHEMA, "protobuf"), (STEP_SCHEMA, "jsonschema")})
 EPISODE_METADATA = "romannet"  # run id, actor id, episode id, task, seed, weights version, units
 CONFIG_METADATA = "config"  # {"toml": the resolved config}
