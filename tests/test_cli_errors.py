@@ -193,3 +193,14 @@ def test_choice_hints() -> None:
     assert with_choice_hint(far) == far
     assert with_choice_hint("the following arguments are required: --out") == \
         "the following arguments are required: --out"
+
+
+def test_live_views_on_a_port_in_use(tmp_path: Path, held_port: int) -> None:
+    """`mcap live`, `actor --foxglove` and `up --foxglove`: one line, before any actor or fleet starts."""
+    (tmp_path / "episodes" / "actor-0").mkdir(parents=True)
+    needles = (f"cannot serve Foxglove on 127.0.0.1:{held_port}", "already in use")
+    one_line_error(romannet("mcap", "live", str(tmp_path / "episodes"), "--foxglove", str(held_port)), *needles)
+    one_line_error(romannet("actor", "--run-dir", str(tmp_path / "run"), "--foxglove", str(held_port)), *needles)
+    one_line_error(romannet("up", "--runs-dir", str(tmp_path / "runs"), "--name", "fox", "--actors", "1",
+                            "--max-actions", "1", "--foxglove", str(held_port)), *needles)
+    assert not (tmp_path / "runs" / "fox" / "pids.json").exists()  # no child was started

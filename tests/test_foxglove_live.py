@@ -193,3 +193,59 @@ def test_live_serves_each_actors_steps_as_they_are_written(tmp_path: Path, proto
     assert code == 0, out
     assert got == [(f"/actor-0{m.topic}", m.log_time_ns, m.data) for m in wanted]
     assert {"/actor-0/step", "/actor-0/transition", "/actor-0/heightmap/depth"} <= {t for t, _, _ in got}
+
+
+UP_SETS = ["model.channels=4", "model.residual_blocks=1", "model.num_threads=1", "learner.num_threads=1",
+           'learner.precision="fp32"', "learner.batch_size=2", "learner.min_replay_size=4",
+           "replay.min_size_to_sample=1", "sim.num_objects=3"]
+
+
+def test_up_foxglove_serves_the_actor_live(tmp_path: Path) -> None:
+    """`romannet up --foxglove PORT`: while the actor acts, a client offering the current app's protocols
+    gets its heightmaps, Q maps, camera, frames and each /step, the bytes the actor records."""
+    port = free_port()
+    argv = ["up", "--runs-dir", str(tmp_path / "runs"), "--name", "fox", "--actors", "1", "--max-actions", "40",
+            "--robot", "gripper", "--resolution", "0.007", "--foxglove", str(port)]
+    for s in UP_SETS:
+        argv += ["--set", s]
+    log_path = tmp_path / "up.out"
+    with open(log_path, "wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "romannet.cli", *argv], stdout=out, stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + 60
+            while True:
+                try:
+                    ws = connect(f"ws://127.0.0.1:{port}", subprotocols=CURRENT_APP, open_timeout=10, max_size=None)
+                    break
+                except (ConnectionRefusedError, TimeoutError):
+                    assert proc.poll() is None and time.monotonic() < deadline, log_path.read_text()
+                    time.sleep(0.3)
+            with ws:
+                channels: dict[int, dict] = {}
+                got: dict[str, list[bytes]] = {}
+                deadline = time.monotonic() + 150
+                while len(got.get("/actor-0/step", [])) < 2:  # two steps after it subscribed
+                    assert time.monotonic() < deadline, f"{sorted(got)}\n{log_path.read_text()[-3000:]}"
+                    msg = ws.recv(timeout=150)
+                    if isinstance(msg, str) and json.loads(msg).get("op") == "advertise":
+                        new = {c["id"]: c for c in json.loads(msg)["channels"]}
+                        channels.update(new)
+                        subscribe(ws, new)
+                    elif isinstance(msg, bytes) and msg[0] == 0x01:
+                        sub_id = struct.unpack_from("<I", msg, 1)[0]
+                        got.setdefault(channels[sub_id]["topic"], []).append(msg[13:])
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+            code = proc.wait(120)
+    out = log_path.read_text()
+    assert code == 0, out[-3000:]
+    assert "live view of run fox on ws://127.0.0.1" in out
+    assert {"/actor-0/heightmap/color", "/actor-0/heightmap/depth", "/actor-0/camera/color", "/actor-0/tf",
+            "/actor-0/camera/calibration", "/actor-0/transition"} <= set(got), sorted(got)
+    assert any(t.startswith("/actor-0/q/") for t in got), sorted(got)
+    recorded = {m.data for path in (tmp_path / "runs" / "fox" / "episodes" / "actor-0").glob("*.mcap")
+                for m in EpisodeReader(path).messages(["/step"])}
+    assert set(got["/actor-0/step"]) <= recorded  # what the app saw is what the actor recorded
+    steps = [json.loads(d) for d in got["/actor-0/step"]]
+    assert all({"primitive", "row", "col", "angle_rad", "q_value", "reward"} <= s.keys() for s in steps)
