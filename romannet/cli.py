@@ -29,7 +29,7 @@ log = logging.getLogger("romannet.cli")
 
 EXAMPLES = {
     "up": ("romannet up --actors 2 --max-actions 2000\n  romannet up --name demo --robot gripper --resolution 0.007 "
-           "--max-actions 60\n  romannet up --name demo --resume"),
+           "--max-actions 60\n  romannet up --name demo --resume\n  romannet up --name demo --foxglove 8765"),
     "info": "romannet info --json --set model.channels=32",
     "bench": ("romannet bench inference --json\n  romannet bench replay --json --inserts 2000 --repeats 200\n"
               "  romannet bench sim --json --actions 10 --robots arm,gripper\n"

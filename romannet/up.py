@@ -4,6 +4,7 @@
     romannet up --name run-1 --resume
     romannet up --name offline-1 --actors 0 --from-recordings runs/run-1/episodes   (learner/offline.py)
     romannet up --name ft-1 --config models/clutter/config.toml --init-from models/clutter
+    romannet up --foxglove 8765    (each actor live in the Foxglove app: romannet/mcaptools/live.py)
 
 Each component runs as its own process (`python -m romannet.cli <verb> ...`: a fresh interpreter, so no
 Zenoh session crosses a fork), with its own Zenoh session in peer mode on loopback and multicast
