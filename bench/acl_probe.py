@@ -105,7 +105,7 @@ def _fail_fast(config: zenoh.Config) -> zenoh.Config:
 
 def _rogue_ca_config(actor_config: Path, work: Path, actor_id: str) -> zenoh.Config:
     """The actor's config with a certificate and key for the same CN, signed by a CA the site never made."""
-    from romannet.common.pki import generate_site
+    from romannet.deploy.pki import generate_site
 
     rogue = generate_site(work / "rogue", [actor_id], ["localhost"])
     config = _fail_fast(_config(actor_config))

@@ -162,8 +162,8 @@ class Fleet:
 def _write_site(work: Path, router_ip: str) -> None:
     from romannet.common.config import load_config
     from romannet.common.configbase import write_toml
-    from romannet.common.deploy_configs import SiteLayout, write_site_configs
-    from romannet.common.pki import generate_site
+    from romannet.deploy.pki import generate_site
+    from romannet.deploy.zenoh_configs import SiteLayout, write_site_configs
 
     generate_site(work / "site" / "pki", ACTORS, [router_ip])
     endpoint = f"tls/{router_ip}:{ROUTER_PORT}"

@@ -17,7 +17,7 @@ from romannet.cli_bench import add_bench_arguments, cmd_bench
 from romannet.cli_parser import Parser, parse_args
 from romannet.common.errors import RomannetError
 from romannet.common.logsetup import setup_logging
-from romannet.deploy import (
+from romannet.deploy.cli import (
     DEPLOY_EXAMPLE,
     ROUTER_EXAMPLE,
     add_deploy_arguments,
@@ -200,13 +200,13 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    from romannet.deploy import cmd_router as run
+    from romannet.deploy.cli import cmd_router as run
 
     return run(args)
 
 
 def cmd_deploy(args: argparse.Namespace) -> int:
-    from romannet.deploy import cmd_deploy as run
+    from romannet.deploy.cli import cmd_deploy as run
 
     return run(args)
 

@@ -1,6 +1,6 @@
-"""Certificates (common/pki.py), the generated Zenoh configs (common/deploy_configs.py), the committed ones in
-deploy/zenoh/, `romannet deploy certs|configs` and the $ROMANNET_ZENOH_CONFIG default. No network here:
-tests/test_deploy_secure.py runs the configs with real sessions."""
+"""Certificates (romannet/deploy/pki.py), the generated Zenoh configs (romannet/deploy/zenoh_configs.py), the
+committed ones in deploy/zenoh/, `romannet deploy certs|configs` and the $ROMANNET_ZENOH_CONFIG default. No
+network here: tests/test_deploy_secure.py runs the configs with real sessions."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from romannet.cli import build_parser
-from romannet.common.deploy_configs import SiteLayout, access_control, router_config, site_configs
-from romannet.common.pki import common_name, generate_site
+from romannet.deploy.pki import common_name, generate_site
+from romannet.deploy.zenoh_configs import SiteLayout, access_control, router_config, site_configs
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -18,10 +18,10 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from romannet.common.deploy_configs import SiteLayout, write_site_configs
 from romannet.common.keys import RunKeys
-from romannet.common.pki import generate_site
 from romannet.common.zenoh_session import free_port
+from romannet.deploy.pki import generate_site
+from romannet.deploy.zenoh_configs import SiteLayout, write_site_configs
 
 RUN = "revoke-run"
 KEYS = RunKeys(RUN)

@@ -24,11 +24,11 @@ from _wire_samples import transition
 
 from romannet.bench.acl_probe import run_acl_probe
 from romannet.common import wire
-from romannet.common.deploy_configs import SiteLayout, write_site_configs
 from romannet.common.keys import RunKeys
-from romannet.common.pki import generate_site
 from romannet.common.replay_client import ZenohReplayClient
 from romannet.common.zenoh_session import NoReplyError, RemoteError, free_port, make_config, open_session
+from romannet.deploy.pki import generate_site
+from romannet.deploy.zenoh_configs import SiteLayout, write_site_configs
 
 ACTORS = ("actor-0", "actor-1")
 RUN = "secure-run"

@@ -21,11 +21,11 @@ from romannet.common import wire
 from romannet.common.config import ModelConfig
 from romannet.common.keys import RunKeys
 from romannet.common.model import RoManNet, state_dict_to_tensors, validate_tensors
-from romannet.common.router import make_router_config
 from romannet.common.weights_client import ZenohWeightsSource
 from romannet.common.weightscodec import make_weights
 from romannet.common.wire_messages import sha256_hex
 from romannet.common.zenoh_session import free_port, make_config, open_session
+from romannet.deploy.router import make_router_config
 from romannet.learner.publisher import WeightsPublisher
 
 RUN = "wpush"

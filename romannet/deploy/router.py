@@ -20,9 +20,9 @@ from typing import Any
 
 import zenoh
 
-from .errors import RomannetError
-from .zenoh_limits import RX_LIMITS
-from .zenoh_session import open_zenoh
+from romannet.common.errors import RomannetError
+from romannet.common.zenoh_limits import RX_LIMITS
+from romannet.common.zenoh_session import open_zenoh
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@
     romannet deploy check --zenoh-config /etc/romannet/zenoh/operator.json5 --run-id run-1 --expect-actors 2
 
 See docs/deploy.md for the whole set-up. This module only parses arguments and prints; the work is in
-common/pki.py, common/deploy_configs.py and common/router.py.
+pki.py, zenoh_configs.py and router.py beside it.
 """
 
 from __future__ import annotations
@@ -58,8 +58,8 @@ def add_router_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    from romannet.common.router import make_router_config, run_router
     from romannet.common.signals import stop_on_signals
+    from romannet.deploy.router import make_router_config, run_router
 
     config = make_router_config(args.zenoh_config, args.listen or None)
     stop = threading.Event()
@@ -131,7 +131,7 @@ def _actor_ids(args: argparse.Namespace) -> tuple[str, ...]:
 
 
 def _layout(args: argparse.Namespace, pki_dir: str | None):
-    from romannet.common.deploy_configs import SiteLayout
+    from romannet.deploy.zenoh_configs import SiteLayout
 
     hosts = args.router_host or [socket.gethostname()]
     scheme = "tls" if pki_dir is not None else "tcp"
@@ -142,7 +142,7 @@ def _layout(args: argparse.Namespace, pki_dir: str | None):
 def cmd_deploy(args: argparse.Namespace) -> int:
     if args.tool == "check":
         return _check(args)
-    from romannet.common.deploy_configs import write_site_configs
+    from romannet.deploy.zenoh_configs import write_site_configs
 
     outdir = Path(args.outdir)
     if args.tool == "configs":
@@ -150,7 +150,7 @@ def cmd_deploy(args: argparse.Namespace) -> int:
         for path in write_site_configs(outdir, layout):
             log.info("wrote %s", path)
         return 0
-    from romannet.common.pki import generate_site
+    from romannet.deploy.pki import generate_site
 
     install = Path(args.install_dir) if args.install_dir else outdir.resolve()
     layout, hosts = _layout(args, str(install / "pki"))

@@ -28,7 +28,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from .keys import check_chunk
+from romannet.common.keys import check_chunk
 
 CA_NAME = "ca"
 SERVICE_IDENTITIES = ("router", "replay", "learner", "operator")
