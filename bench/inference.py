@@ -34,7 +34,6 @@ import torch
 import torch.nn.functional as F
 
 from romannet.common.config import ExplorationConfig, ModelConfig
-from romannet.common.info import cpu_model
 from romannet.common.model import RoManNet, parameter_count, preprocess
 from romannet.common.policy import (
     FastNet,
@@ -44,6 +43,7 @@ from romannet.common.policy import (
     fused_ops_available,
     nets_to_run,
 )
+from romannet.info import cpu_model
 
 logger = logging.getLogger(__name__)
 

@@ -33,9 +33,9 @@ import torch
 from romannet.common.action import Action
 from romannet.common.config import ModelConfig, RewardConfig, TaskConfig
 from romannet.common.config_learner import LearnerConfig
-from romannet.common.info import cpu_model
 from romannet.common.policy import cpu_bf16_flags
 from romannet.common.wire_messages import TransitionMsg
+from romannet.info import cpu_model
 from romannet.learner.trainer import BatchItem, Trainer
 
 from .inference import SIZE_PX, synthetic_scene

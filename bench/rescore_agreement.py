@@ -5,8 +5,8 @@
 Records episodes with the actor's recorder (actor/recorder.py), the floating gripper at 64x64, driving the
 simulator with the scripted oracle mixed with uniformly random valid actions (share --random, so there are
 failures to judge), then rescores every file under the recorded configuration with each X rule of
-common/rescoring.py and counts, per task and primitive, the steps whose X and R match what the simulator
-recorded. With "recorded" X, P and R are the simulator's own functions of the heightmap, but of the
+romannet/mcaptools/rescoring.py and counts, per task and primitive, the steps whose X and R match what the
+simulator recorded. With "recorded" X, P and R are the simulator's own functions of the heightmap, but of the
 heightmap as stored (depth in 1e-5 m units), so a pixel right at reward.occupied_height_m can flip:
 `max_abs_dr_same_x` shows how far R moves for that reason. "heightmap" and "auto" show what judging X
 from heightmaps costs. Prints one JSON object.
@@ -31,9 +31,9 @@ from romannet.common.action import Action, pixel_to_position
 from romannet.common.config import Config, load_config
 from romannet.common.configbase import dumps_toml
 from romannet.common.episode_file import read_episode
-from romannet.common.rescoring import SuccessRule
 from romannet.common.wire import TransitionMsg, encode_transition
 from romannet.mcaptools.rescore import RescoreSettings, rescore_file
+from romannet.mcaptools.rescoring import SuccessRule
 from romannet.mcaptools.steps import parse_transition, primitive_of
 
 SETS = ["workspace.resolution_m=0.007", 'sim.robot="gripper"', "sim.num_objects=6", "sim.max_steps=20",

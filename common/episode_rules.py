@@ -1,5 +1,6 @@
 """The rules of an episode, in one place: the simulator (actor/sim/env.py), a real robot (actor/real/env.py),
-rescoring (common/rescoring.py), evaluation, the training curves and the actor's statistics all apply these.
+rescoring (romannet/mcaptools/rescoring.py), evaluation, the training curves and the actor's statistics all
+apply these.
 
 - refusal: an action the environment cannot attempt at all (a primitive the task does not use, a place with
   an empty hand, a push or pick while holding, a pixel outside the heightmap); it is judged a failure.

@@ -16,7 +16,6 @@ from romannet import __version__
 from romannet.cli_bench import add_bench_arguments, cmd_bench
 from romannet.cli_parser import Parser, parse_args
 from romannet.common.errors import RomannetError
-from romannet.common.logsetup import setup_logging
 from romannet.deploy.cli import (
     DEPLOY_EXAMPLE,
     ROUTER_EXAMPLE,
@@ -24,6 +23,7 @@ from romannet.deploy.cli import (
     add_router_arguments,
     add_zenoh_config_arg,
 )
+from romannet.logsetup import setup_logging
 
 log = logging.getLogger("romannet.cli")
 
@@ -86,7 +86,7 @@ def _load(args: argparse.Namespace):
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from romannet.common.info import collect_info, format_info
+    from romannet.info import collect_info, format_info
 
     info = collect_info(_load(args))
     sys.stdout.write((json.dumps(info, indent=2) if args.json else format_info(info)) + "\n")

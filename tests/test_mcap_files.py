@@ -25,10 +25,10 @@ from romannet.common.episode_file import (
     episode_paths,
     read_episode,
 )
-from romannet.common.rescoring import SuccessRule, area_pixels, heightmap_success, rescore_step
 from romannet.common.wire import decode_transition
 from romannet.mcaptools.play import PlayOptions, delay_s
 from romannet.mcaptools.rescore import rescored_id
+from romannet.mcaptools.rescoring import SuccessRule, area_pixels, heightmap_success, rescore_step
 from romannet.mcaptools.steps import group_steps, parse_transition
 
 pytestmark = pytest.mark.timeout(60)

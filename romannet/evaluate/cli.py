@@ -167,7 +167,7 @@ def resolve_checkpoint(path: Path) -> tuple[Path, Path]:
 def _machine() -> str:
     import torch
 
-    from romannet.common.info import cpu_model
+    from romannet.info import cpu_model
 
     return f"{platform.machine()} {cpu_model() or 'CPU'}, {os.cpu_count()} cores, torch {torch.__version__}"
 

@@ -2,8 +2,8 @@
 reward configuration, written as new episode files (--out DIR) and/or fed to a replay server (--feed).
 
 The reward configuration is the one recorded in each file, then the [reward] table of --reward-config,
-then --set reward.FIELD=VALUE. X follows --success (common/rescoring.py): by default push and place are
-judged from the heightmaps and pick as the gripper recorded it. P and R_tp follow common/reward.py exactly.
+then --set reward.FIELD=VALUE. X follows --success (rescoring.py beside this file): by default push and
+place are judged from the heightmaps and pick as the gripper recorded it. P and R_tp follow common/reward.py exactly.
 
 A rescored episode is a new episode: its id is the source's plus `.rs-<8 hex>`, a digest of the reward
 configuration and the X rule, so rescored and original experience can share a replay server, and
@@ -46,11 +46,11 @@ from romannet.common.episode_file import (
 )
 from romannet.common.errors import ConfigError, RomannetError
 from romannet.common.imagecodec import units_to_depth_m
-from romannet.common.rescoring import Score, SuccessRule, rescore_step
 from romannet.common.safe_names import UnsafeNameError, safe_name
 from romannet.common.wire import decode_transition
 
 from .render import decode_raw16
+from .rescoring import Score, SuccessRule, rescore_step
 from .rewrite import EpisodeWriter
 
 log = logging.getLogger(__name__)

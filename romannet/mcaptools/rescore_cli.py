@@ -15,13 +15,13 @@ from romannet.common.episode_feed import FeedOptions, FeedReport, feed_stream
 from romannet.common.episode_file import EpisodeFileError, episode_paths
 from romannet.common.errors import RomannetError
 from romannet.common.replay_client import ZenohReplayClient
-from romannet.common.rescoring import SuccessRule
 from romannet.common.signals import stop_on_signals
 from romannet.common.zenoh_session import make_config, open_session
 
 from .bar import ProgressBar
 from .feed import resolve_run_id
 from .rescore import FileResult, RescoreSettings, load_reward_table, rescore_file, touches_kernel
+from .rescoring import SuccessRule
 
 log = logging.getLogger(__name__)
 

@@ -6,8 +6,8 @@ import platform
 from importlib import metadata
 from typing import Any
 
-from .config import Config
-from .configbase import dumps_toml, to_dict
+from romannet.common.config import Config
+from romannet.common.configbase import dumps_toml, to_dict
 
 
 def _version(dist: str) -> str:
@@ -32,7 +32,7 @@ def cpu_model() -> str:
 def collect_info(cfg: Config) -> dict[str, Any]:
     import torch
 
-    from .model import RoManNet, parameter_count
+    from romannet.common.model import RoManNet, parameter_count
 
     model = RoManNet(cfg.model)
     return {
@@ -49,8 +49,8 @@ def collect_info(cfg: Config) -> dict[str, Any]:
 
 
 def format_info(info: dict[str, Any]) -> str:
-    from .config import Config
-    from .configbase import from_dict
+    from romannet.common.config import Config
+    from romannet.common.configbase import from_dict
 
     lines = [
         f"romannet {info['romannet']}  (python {info['python']}, {info['platform']})",

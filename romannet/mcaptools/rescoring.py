@@ -29,10 +29,10 @@ from typing import Literal
 
 import numpy as np
 
-from .config import RewardConfig, TaskConfig
-from .configbase import require
-from .episode_rules import occupied_pixels, step_reward, task_progress
-from .stack import stack_height
+from romannet.common.config import RewardConfig, TaskConfig
+from romannet.common.configbase import require
+from romannet.common.episode_rules import occupied_pixels, step_reward, task_progress
+from romannet.common.stack import stack_height
 
 
 @dataclass(frozen=True)
