@@ -3,7 +3,7 @@
     Y_t   = R_tp + eta * gamma * V(s_{t+1})        eta = 1 iff R_tp > 0 (future value only through success)
     V     = max over the primitives allowed in s_{t+1} of max over pixels of Q   (0 at episode end)
     label = R_tpg + eta * gamma * V   on the support of the TPG kernel, undefined (no loss) elsewhere
-    loss  = Huber(Q - label) over the support, in the executed primitive's net only
+    loss  = Huber(Q - label) over the support, in the executed primitive's net only (learner/losses.py)
 
 How the label map carries Y: `common.reward.tpg_label` gives R_tpg = max(R_tp, R_tp (*) G) around the
 executed pixel, which equals R_tp *at* the executed pixel for either kernel normalisation. Adding the same
@@ -14,7 +14,8 @@ label 0 on the whole support.
 
 Rotation target: on successful actions the rotation head is trained at the executed pixel toward
 encode_angle(theta): (cos theta, sin theta) for push, (cos 2 theta, sin 2 theta) for pick/place, plus the
-second harmonic with model.rotation_harmonics = 2 (common/model.py says why).
+second harmonic with model.rotation_harmonics = 2 (common/model.py says why); rotation_targets gives a
+batch's signed targets and weights (rotation_sign_weight).
 
 Opposite orientation (paper: "for an antipodal gripper, the pick and place motion primitives are symmetrical
 around 0-180 degrees, thus we can pass the gradients for the opposite orientation as well"). VPG's nets
@@ -34,11 +35,10 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from romannet.common.config import RewardConfig
-from romannet.common.model import SYMMETRIC_PRIMITIVES, encode_angle
+from romannet.common.model import encode_angle
 from romannet.common.policy import nets_to_run
 from romannet.common.reward import tpg_label
 
@@ -137,27 +137,11 @@ def rotation_sign_weight(success: bool, success_only: bool, failure_weight: floa
     return -1.0, float(failure_weight)
 
 
-def opposite_orientation(angle_rad: float) -> float:
-    """theta + pi wrapped to (-pi, pi]: the same grasp/place for a parallel-jaw gripper."""
-    a = math.remainder(angle_rad + math.pi, 2 * math.pi)
-    return math.pi if a == -math.pi else a
-
-
-def is_symmetric(primitive: str) -> bool:
-    """Whether theta and theta + pi are the same action (pick and place with an antipodal gripper)."""
-    return primitive in SYMMETRIC_PRIMITIVES
-
-
-def huber(error: Tensor, delta: float = 1.0) -> Tensor:
-    """Element-wise Huber loss of the paper: 0.5 e^2 for |e| <= delta, delta (|e| - 0.5 delta) beyond."""
-    return F.huber_loss(error, torch.zeros_like(error), reduction="none", delta=delta)
-
-
-def support_loss(q: Tensor, label: Tensor, support: Tensor, delta: float, reduction: str) -> Tensor:
-    """Huber(q - label) summed ("sum") or averaged ("mean") over the support; q, label, support (h, w)."""
-    per_pixel = huber(q - label, delta) * support
-    if reduction == "sum":
-        return per_pixel.sum()
-    if reduction == "mean":
-        return per_pixel.sum() / support.sum().clamp_min(1)
-    raise ValueError(f"reduction = {reduction!r} must be 'sum' or 'mean'")
+def rotation_targets(angles_rad: Sequence[float], successes: Sequence[bool], primitive: str, harmonics: int,
+                     success_only: bool, failure_weight: float) -> tuple[Tensor, Tensor]:
+    """(targets float32 (k, 2 * harmonics), weights float32 (k,)) of k actions of one primitive: row i is
+    sign_i * rotation_target(angle_i), weighted by weight_i, with (sign_i, weight_i) from rotation_sign_weight."""
+    signed = [rotation_sign_weight(ok, success_only, failure_weight) for ok in successes]
+    targets = torch.tensor([[sign * v for v in rotation_target(a, primitive, harmonics)]
+                            for a, (sign, _) in zip(angles_rad, signed, strict=True)])
+    return targets, torch.tensor([w for _, w in signed], dtype=torch.float32)

@@ -6,13 +6,14 @@ One `train_step(batch)`:
    episode's end make V irrelevant, so its forward pass is skipped).
 2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel.
 3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net; the
-   Huber loss over each label's support (+ the rotation loss on successes, and on failures toward the
-   opposite angle with learner.rotation_failure_weight: at the executed pixel, or over the support with
-   learner.rotation_support = "kernel"; + learner.executed_pixel_weight x the paper's Huber(Q(s_t, a_t) - Y_t)
-   at the executed pixel), times the item's importance-sampling weight, averaged over the batch (with
-   learner.augment_rotation each item is first turned by a random yaw about its executed pixel,
-   learner/augment.py). Only the executed primitives' nets get gradients; the others keep `.grad is None`,
-   so SGD skips them entirely (no weight decay, no momentum).
+   loss (learner/losses.py, whose docstring has the formulas): the Huber loss over each label's support
+   + the rotation loss on successes (and on failures toward the opposite angle with
+   learner.rotation_failure_weight: at the executed pixel, or over the support with learner.rotation_support
+   = "kernel") + learner.executed_pixel_weight x the paper's Huber(Q(s_t, a_t) - Y_t) at the executed pixel,
+   times the item's importance-sampling weight, averaged over the batch (with learner.augment_rotation each
+   item is first turned by a random yaw about its executed pixel, learner/augment.py). Only the executed
+   primitives' nets get gradients; the others keep `.grad is None`, so SGD skips them entirely (no weight
+   decay, no momentum).
 4. One SGD step; the exploration rate is updated with the paper's L_t (the Huber of the executed pixel's
    TD error, averaged over the batch).
 
@@ -35,6 +36,7 @@ from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -51,17 +53,15 @@ from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, Tra
 
 from .augment import augment_yaws, rotated_transition
 from .crop import crop_origin
-from .targets import (
-    bootstrap_value,
-    clip_value,
-    huber,
-    q_label,
-    return_range,
-    rotation_sign_weight,
-    rotation_target,
-    support_loss,
-    td_target,
+from .losses import (
+    executed_pixel_loss,
+    item_loss,
+    q_loss,
+    rotation_kernel_loss,
+    rotation_pixel_loss,
+    weighted_sum,
 )
+from .targets import bootstrap_value, clip_value, q_label, return_range, rotation_targets, td_target
 
 logger = logging.getLogger(__name__)
 
@@ -89,6 +89,28 @@ class StepStats:
     def priority_update(self) -> PriorityUpdateMsg:
         """The replay priorities of this batch: |TD error| per item id."""
         return PriorityUpdateMsg(self.item_ids, self.td_errors)
+
+
+class _GroupInputs(NamedTuple):
+    """One primitive's items in their training windows: labels and supports (k, h, w), input x, executed
+    pixels rows, cols (k,)."""
+
+    label: Tensor
+    support: Tensor
+    x: Tensor
+    rows: Tensor
+    cols: Tensor
+
+
+class _GroupLoss(NamedTuple):
+    """One primitive's share of a step: its IS-weighted summed loss (differentiable) and per-item values."""
+
+    objective: Tensor
+    item_losses: list[float]  # L per item, unweighted
+    td_errors: list[float]  # |Q(s_t, a_t) - Y|
+    pixel_losses: list[float]  # the paper's L_t = Huber(Q(s_t, a_t) - Y)
+    q_mean: float
+    q_max: float
 
 
 def _fp32_head_forward(self: torch.nn.Conv2d, x: Tensor) -> Tensor:
@@ -246,15 +268,18 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         total = torch.zeros((), device=self.device)
         td_errors = [0.0] * n
-        pixel_huber = [0.0] * n
+        pixel_losses = [0.0] * n
         loss_by_primitive: dict[str, float] = {}
         q_mean: dict[str, float] = {}
         q_max: dict[str, float] = {}
         for p, idx in groups.items():
-            group_loss, item_losses = self._group_loss(p, idx, items, v_next, targets, td_errors, pixel_huber,
-                                                       q_mean, q_max)
-            total = total + group_loss
-            loss_by_primitive[p] = float(np.mean(item_losses))
+            g = self._group_loss(p, [transitions[i] for i in idx], [v_next[i] for i in idx],
+                                 [targets[i] for i in idx], [items[i][1] for i in idx])
+            total = total + g.objective
+            loss_by_primitive[p] = float(np.mean(g.item_losses))
+            q_mean[p], q_max[p] = g.q_mean, g.q_max
+            for k, i in enumerate(idx):
+                td_errors[i], pixel_losses[i] = g.td_errors[k], g.pixel_losses[k]
         loss = total / n
         if not torch.isfinite(loss):  # a diverged learner must not step (nor publish, nor move the LAE rate)
             raise FloatingPointError(f"training loss is {float(loss.detach())} at update {self.updates + 1}; "
@@ -266,72 +291,60 @@ class Trainer:
         self.updates += 1
         if self.target is not None and self.updates % cfg.target_sync_every_updates == 0:
             self.sync_target()
-        exploration_loss = float(np.mean(pixel_huber))
+        exploration_loss = float(np.mean(pixel_losses))
         rate = self.exploration.update(exploration_loss)
         return StepStats(loss=float(loss.detach()), loss_by_primitive=loss_by_primitive, td_errors=tuple(td_errors),
                          targets=tuple(targets), item_ids=tuple(int(i) for _, _, i in items), q_mean=q_mean,
                          q_max=q_max, exploration_loss=exploration_loss, exploration_rate=rate,
                          updates=self.updates, duration_s=time.perf_counter() - start)
 
-    def _group_loss(self, p: str, idx: list[int], items: list[BatchItem], v_next: list[float],
-                    targets: list[float], td_errors: list[float], pixel_huber: list[float],
-                    q_mean: dict[str, float], q_max: dict[str, float]) -> tuple[Tensor, list[float]]:
-        """IS-weighted summed loss of one primitive's items (one forward pass); fills the per-item outputs."""
+    def _group_inputs(self, ts: Sequence[TransitionMsg], v_next: Sequence[float]) -> _GroupInputs:
+        """The nets' input, Q labels and executed pixels of one primitive's items, each in its training window
+        (learner.train_crop_px; the whole heightmap with 0 or a window as large as the image)."""
         cfg = self.cfg
-        ts = [items[i][0] for i in idx]
-        if cfg.augment_rotation:  # each item at a random yaw about its executed pixel
-            phis = augment_yaws(self.seed, self.updates, p, len(ts))
-            ts = [rotated_transition(t, phi) for t, phi in zip(ts, phis, strict=True)]
         h, w = ts[0].shape
         crop = cfg.train_crop_px if 0 < cfg.train_crop_px < min(h, w) else 0
-        labels, supports, colors, depths, rows_l, cols_l = [], [], [], [], [], []
-        for t, i in zip(ts, idx, strict=True):
-            lab, sup = q_label((h, w), t.action.row, t.action.col, t.action.angle_rad, t.reward, v_next[i],
-                               cfg.gamma, self.reward_cfg)
-            r0, c0 = crop_origin((h, w), t.action.row, t.action.col, crop) if crop else (0, 0)
+        labels, supports, colors, depths, rows, cols = [], [], [], [], [], []
+        for t, v in zip(ts, v_next, strict=True):
+            a = t.action
+            lab, sup = q_label((h, w), a.row, a.col, a.angle_rad, t.reward, v, cfg.gamma, self.reward_cfg)
+            r0, c0 = crop_origin((h, w), a.row, a.col, crop) if crop else (0, 0)
             win = (slice(r0, r0 + crop), slice(c0, c0 + crop)) if crop else (slice(None), slice(None))
             labels.append(lab[win])
             supports.append(sup[win])
             colors.append(t.color_before[win])
             depths.append(t.depth_before[win])
-            rows_l.append(t.action.row - r0)
-            cols_l.append(t.action.col - c0)
-        label = torch.from_numpy(np.stack(labels)).to(self.device)
-        support = torch.from_numpy(np.stack(supports)).to(self.device)
-        x = self._inputs(colors, depths)
+            rows.append(a.row - r0)
+            cols.append(a.col - c0)
+        return _GroupInputs(torch.from_numpy(np.stack(labels)).to(self.device),
+                            torch.from_numpy(np.stack(supports)).to(self.device), self._inputs(colors, depths),
+                            torch.tensor(rows, device=self.device), torch.tensor(cols, device=self.device))
+
+    def _group_loss(self, p: str, ts: list[TransitionMsg], v_next: list[float], targets: list[float],
+                    is_weights: list[float]) -> _GroupLoss:
+        """The loss of one primitive's items in one forward pass of its net (learner/losses.py)."""
+        cfg = self.cfg
+        if cfg.augment_rotation:  # each item at a random yaw about its executed pixel
+            ts = [rotated_transition(t, phi) for t, phi in
+                  zip(ts, augment_yaws(self.seed, self.updates, p, len(ts)), strict=True)]
+        g = self._group_inputs(ts, v_next)
         with self._autocast():
-            q, rot = self.model.nets[p](x)
+            q, rot = self.model.nets[p](g.x)
         q, rot = q.float(), rot.float()
-        rows = torch.tensor(rows_l, device=self.device)
-        cols = torch.tensor(cols_l, device=self.device)
         ar = torch.arange(len(ts), device=self.device)
-        q_exec = q[ar, rows, cols]
-        rot_exec = rot[ar, :, rows, cols]  # (k, 2 * harmonics)
-        y = torch.tensor([targets[i] for i in idx], device=self.device)
-        is_w = torch.tensor([items[i][1] for i in idx], device=self.device, dtype=torch.float32)
-        q_losses = torch.stack([support_loss(q[k], label[k], support[k], cfg.huber_delta, cfg.loss_reduction)
-                                for k in range(len(ts))])
-        sign_weight = [rotation_sign_weight(t.success, cfg.train_rotation_on_success_only,
-                                            cfg.rotation_failure_weight) for t in ts]
-        harmonics = self.model.cfg.rotation_harmonics
-        rot_target = torch.tensor([[sign * v for v in rotation_target(t.action.angle_rad, p, harmonics)]
-                                   for t, (sign, _) in zip(ts, sign_weight, strict=True)], device=self.device)
-        rot_mask = torch.tensor([w for _, w in sign_weight], device=self.device, dtype=torch.float32)
-        if cfg.rotation_support == "kernel":  # mean squared error over each label's support
-            sq = ((rot - rot_target[:, :, None, None]) ** 2).sum(dim=1)
-            rot_losses = (sq * support).sum(dim=(1, 2)) / support.sum(dim=(1, 2)).clamp_min(1)
-        else:
-            rot_losses = ((rot_exec - rot_target) ** 2).sum(dim=1)
-        rot_losses = rot_losses * rot_mask
-        item_losses = q_losses + cfg.rotation_loss_weight * rot_losses
-        if cfg.executed_pixel_weight > 0:  # the paper's L_t at the executed pixel, beside the support's loss
-            item_losses = item_losses + cfg.executed_pixel_weight * huber(q_exec - y, cfg.huber_delta)
-        with torch.no_grad():
-            err = (q_exec - y).detach()
-            for k, i in enumerate(idx):
-                td_errors[i] = abs(float(err[k]))
-            for k, hub in enumerate(huber(err, cfg.huber_delta).tolist()):
-                pixel_huber[idx[k]] = hub
-            q_mean[p] = float(q.mean())
-            q_max[p] = float(q.max())
-        return (is_w * item_losses).sum(), item_losses.detach().tolist()
+        q_exec = q[ar, g.rows, g.cols]
+        y = torch.tensor(targets, device=self.device)
+        is_w = torch.tensor(is_weights, device=self.device, dtype=torch.float32)
+        q_losses = q_loss(q, g.label, g.support, cfg.huber_delta, cfg.loss_reduction)
+        rho, rho_w = rotation_targets([t.action.angle_rad for t in ts], [t.success for t in ts], p,
+                                      self.model.cfg.rotation_harmonics, cfg.train_rotation_on_success_only,
+                                      cfg.rotation_failure_weight)
+        rho, rho_w = rho.to(self.device), rho_w.to(self.device)
+        rot_losses = (rotation_kernel_loss(rot, rho, rho_w, g.support) if cfg.rotation_support == "kernel"
+                      else rotation_pixel_loss(rot[ar, :, g.rows, g.cols], rho, rho_w))
+        pixel_losses = executed_pixel_loss(q_exec, y, cfg.huber_delta)
+        item_losses = item_loss(q_losses, rot_losses, cfg.rotation_loss_weight, pixel_losses,
+                                cfg.executed_pixel_weight)
+        return _GroupLoss(weighted_sum(is_w, item_losses), item_losses.detach().tolist(),
+                          [abs(e) for e in (q_exec - y).detach().tolist()], pixel_losses.detach().tolist(),
+                          float(q.detach().mean()), float(q.detach().max()))

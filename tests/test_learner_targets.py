@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from romannet.common.config import RewardConfig
-from romannet.common.model import encode_angle
+from romannet.common.model import SYMMETRIC_PRIMITIVES, encode_angle
 from romannet.common.reward import tpg_label
 from romannet.learner import targets as T
 
@@ -67,23 +67,21 @@ def test_failed_action_label_is_zero_on_an_unchanged_support():
 @pytest.mark.parametrize("theta", [0.0, 0.3, -1.2, math.pi / 2])
 def test_opposite_orientation_label_is_identical(primitive, theta):
     """The paper's 'gradients for the opposite orientation' are exact: both labels coincide."""
-    opposite = T.opposite_orientation(theta)
-    assert math.isclose(abs(opposite - theta), math.pi, abs_tol=1e-12) or math.isclose(
-        abs(opposite - theta), math.pi, rel_tol=1e-12)
+    opposite = theta + math.pi
     a = T.q_label(SHAPE, 24, 17, theta, 1.0, v_next=0.6, gamma=0.5, cfg=CFG)
     b = T.q_label(SHAPE, 24, 17, opposite, 1.0, v_next=0.6, gamma=0.5, cfg=CFG)
     np.testing.assert_array_equal(a[1], b[1])
     np.testing.assert_allclose(a[0], b[0], atol=1e-6)
     np.testing.assert_allclose(T.rotation_target(theta, primitive), T.rotation_target(opposite, primitive),
                                atol=1e-12)
-    assert T.is_symmetric(primitive)
+    assert primitive in SYMMETRIC_PRIMITIVES
 
 
 def test_push_is_directional():
-    assert not T.is_symmetric("push")
+    assert "push" not in SYMMETRIC_PRIMITIVES
     assert T.rotation_target(0.3, "push") == pytest.approx(encode_angle(0.3, "push"))
     c, s = T.rotation_target(0.3, "push")
-    c2, s2 = T.rotation_target(T.opposite_orientation(0.3), "push")
+    c2, s2 = T.rotation_target(0.3 + math.pi, "push")
     assert c == pytest.approx(-c2) and s == pytest.approx(-s2)
 
 
@@ -98,6 +96,21 @@ def test_rotation_sign_weight_imitates_successes_and_avoids_failures_when_weight
     for bad in (-0.1, math.nan, math.inf):
         with pytest.raises(ValueError, match="non-negative"):
             T.rotation_sign_weight(True, True, bad)
+
+
+def test_rotation_targets_sign_and_weight_each_action():
+    # A pick at 0 that succeeded: (cos 0, sin 0); one at pi/4 that failed, failures weighted 0.5: the opposite
+    # of (cos pi/2, sin pi/2).
+    targets, weights = T.rotation_targets([0.0, math.pi / 4], [True, False], "pick", 1, True, 0.5)
+    assert targets.dtype == weights.dtype == torch.float32 and targets.shape == (2, 2)
+    np.testing.assert_allclose(targets.numpy(), [[1.0, 0.0], [0.0, -1.0]], atol=1e-7)
+    assert weights.tolist() == [1.0, 0.5]
+    # success_only off: a failed push is imitated, at full weight; two harmonics give four values.
+    targets, weights = T.rotation_targets([math.pi / 2], [False], "push", 2, False, 0.0)
+    np.testing.assert_allclose(targets.numpy(), [[0.0, 1.0, -1.0, 0.0]], atol=1e-7)
+    assert weights.tolist() == [1.0]
+    # the default: failures do not train the head (weight 0).
+    assert T.rotation_targets([0.1], [False], "place", 1, True, 0.0)[1].tolist() == [0.0]
 
 
 def test_weighted_failures_turn_the_head_from_the_policys_own_angle_toward_the_one_that_succeeds():
@@ -121,16 +134,6 @@ def test_weighted_failures_turn_the_head_from_the_policys_own_angle_toward_the_o
     assert optimum(0.0, one_sided) == pytest.approx(15.0)
     assert optimum(1 / 3, one_sided) == pytest.approx(-9.2, abs=0.1)
     assert optimum(1 / 3, {0.0: (100, 0.45), 30.0: (150, 0.15), -30.0: (150, 0.15)}) == pytest.approx(0.0, abs=1e-6)
-
-
-def test_huber_matches_the_paper_and_support_reduction():
-    e = torch.tensor([0.5, -1.0, 3.0])
-    np.testing.assert_allclose(T.huber(e).numpy(), [0.125, 0.5, 2.5])
-    q = torch.zeros(2, 2)
-    label = torch.tensor([[1.0, 3.0], [0.0, 9.0]])
-    support = torch.tensor([[True, True], [False, False]])
-    assert float(T.support_loss(q, label, support, 1.0, "sum")) == pytest.approx(3.0)
-    assert float(T.support_loss(q, label, support, 1.0, "mean")) == pytest.approx(1.5)
 
 
 def test_return_range_and_clipping_the_bootstrap():

@@ -12,7 +12,7 @@ import torch
 from romannet.common.exploration import lae_update
 from romannet.common.model import RoManNet, load_tensors, preprocess_batch
 from romannet.common.weightscodec import make_weights, weights_state_dict
-from romannet.learner.targets import huber
+from romannet.learner.losses import huber
 
 
 def _params(model, primitive):
