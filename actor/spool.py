@@ -118,11 +118,6 @@ class Spool:
             return True
 
     # ------------------------------------------------------------------------------------- consumer
-    def oldest(self) -> int | None:
-        """Sequence number of the oldest pending item, or None."""
-        with self._lock:
-            return min(self._sizes, default=None)
-
     def wait_for_item(self, timeout_s: float) -> int | None:
         """The oldest pending item's sequence number, waiting up to timeout_s seconds for one."""
         deadline = time.monotonic() + timeout_s

@@ -168,9 +168,3 @@ def tpg_label(shape: tuple[int, int], row: int, col: int, angle_rad: float, r_tp
     support[r0:r1, c0:c1] = kernel_mask[window]
     reward_map[row, col] = max(float(reward_map[row, col]), r_tp)  # the max(R_tp, R_g) of the paper
     return reward_map, support
-
-
-def tpg_reward_map(shape: tuple[int, int], row: int, col: int, angle_rad: float, r_tp: float,
-                   cfg: RewardConfig) -> np.ndarray:
-    """R_tpg as a float32 (h, w) map; tpg_label without the support mask."""
-    return tpg_label(shape, row, col, angle_rad, r_tp, cfg)[0]

@@ -69,7 +69,7 @@ def test_put_read_remove_and_bound(tmp_path: Path) -> None:
     items = _fill(spool, 3)
     assert spool.items == 3 and spool.bytes == sum(map(len, items))
     assert spool.full() and not spool.wait_for_room(0.05)
-    oldest = spool.oldest()
+    oldest = spool.wait_for_item(0.0)
     assert oldest == 0 and spool.read(oldest) == items[0]
     assert item_key(items[0]) == ("a0", "ep000000", 0)
     spool.remove(oldest)

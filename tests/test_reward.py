@@ -18,7 +18,6 @@ from romannet.common.reward import (
     progress_reversed,
     task_progress_reward,
     tpg_label,
-    tpg_reward_map,
 )
 
 CFG = RewardConfig()
@@ -124,14 +123,14 @@ def test_label_peaks_at_the_executed_pixel_with_r_tp_and_is_zero_off_support(row
 
 
 def test_peak_normalization_gives_neighbours_nearly_the_same_reward():
-    reward = tpg_reward_map(SHAPE, 100, 100, 0.0, 1.0, CFG)
+    reward = tpg_label(SHAPE, 100, 100, 0.0, 1.0, CFG)[0]
     assert reward[100, 101] == pytest.approx(math.exp(-1 / 32), rel=1e-6)  # 1 px along x: sigma_x = 4
     assert reward[101, 100] == pytest.approx(math.exp(-1 / 8), rel=1e-6)  # 1 px across: sigma_y = 2
     assert reward[100, 101] > reward[101, 100]
 
 
 def test_paper_normalization_leaves_r_tp_at_the_pixel_and_a_tiny_halo():
-    reward = tpg_reward_map(SHAPE, 100, 100, 0.0, 1.0, replace(CFG, kernel_normalization="paper"))
+    reward = tpg_label(SHAPE, 100, 100, 0.0, 1.0, replace(CFG, kernel_normalization="paper"))[0]
     assert reward[100, 100] == 1.0
     halo = reward.copy()
     halo[100, 100] = 0
