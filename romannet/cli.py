@@ -1,7 +1,8 @@
 """`romannet <verb>`: the single command-line entry point of the fleet.
 
 Each verb's module is imported only when that verb runs, so `romannet --help` stays fast. The benchmarks'
-sub-commands are romannet/cli_bench.py's, the "did you mean" error handling romannet/cli_parser.py's.
+sub-commands are romannet/cli_bench.py's, the run diagnostics' romannet/analyse/cli.py's, the "did you mean"
+error handling romannet/cli_parser.py's.
 """
 
 from __future__ import annotations
@@ -66,6 +67,9 @@ EXAMPLES = {
               "--eval-objects 30 --eval-object-set novel --out sweeps/clutter"),
     "plot": ("romannet plot runs/demo --out demo.png\n"
              "  romannet plot runs/abl-baseline runs/abl-tpg runs/stack-h4 --labels baseline +TPG +TPG+LAE --out abl.png"),
+    "analyse": ("romannet analyse pick-offsets runs/stack-h4 --split 20 --json\n"
+                "  romannet analyse training-counts runs/stack-h4 --json\n"
+                "  romannet analyse angle-probe runs/stack-h4 --episodes 12"),
     "mcap": ("romannet mcap inspect runs/demo/episodes\n  romannet mcap play runs/demo/episodes/actor-0/ep000000.mcap "
              "--foxglove 8765\n  romannet mcap feed runs/demo/episodes --run-id offline-1 --connect "
              "tcp/127.0.0.1:7447\n  romannet mcap export runs/demo/episodes/actor-0/ep000000.mcap --video ep0.mp4\n"
@@ -207,6 +211,12 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 def cmd_deploy(args: argparse.Namespace) -> int:
     from romannet.deploy.cli import cmd_deploy as run
+
+    return run(args)
+
+
+def cmd_analyse(args: argparse.Namespace) -> int:
+    from romannet.analyse.cli import run
 
     return run(args)
 
@@ -397,6 +407,11 @@ def build_parser() -> argparse.ArgumentParser:
     from romannet.mcaptools.cli import add_arguments as add_mcap_arguments
 
     add_mcap_arguments(verb("mcap", MCAP_SUMMARY, cmd_mcap))
+
+    from romannet.analyse.cli import SUMMARY as ANALYSE_SUMMARY
+    from romannet.analyse.cli import add_arguments as add_analyse_arguments
+
+    add_analyse_arguments(verb("analyse", ANALYSE_SUMMARY, cmd_analyse))
     return parser
 
 

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from romannet.bench.pick_offsets import pick_offset
+from romannet.analyse.pick_offsets import pick_offset
 from romannet.learner.augment import augment_yaws, rotate_about, rotated_transition, turned_angle
 
 SIZE = 48
@@ -45,8 +45,8 @@ def test_rotate_about_turns_points_about_the_pixel_in_the_actions_sense():
 
 @pytest.mark.parametrize("phi_deg", [30.0, -75.0, 140.0])
 def test_a_turned_pick_is_the_same_pick_relative_to_the_cube(phi_deg):
-    """The pick measured against the cube under it (bench.pick_offsets: offsets along / across the closing
-    axis, angle to the faces) is the same before and after the turn, off the cube's centre included."""
+    """The pick measured against the cube under it (romannet.analyse.pick_offsets: offsets along / across the
+    closing axis, angle to the faces) is the same before and after the turn, off the cube's centre included."""
     color, depth = cube_scene(math.radians(10))
     t = H.transition(size=SIZE, row=23, col=27, angle_rad=math.radians(25), color_before=color, depth_before=depth)
     turned = rotated_transition(t, math.radians(phi_deg))

@@ -24,7 +24,7 @@ COLUMNS = (*EVAL_METRICS, TRAINING)
 def run_entry(report: Mapping[str, Any], successes: Sequence[bool] | None) -> dict[str, Any]:
     """One run's (or scripted policy's) numbers: the evaluation's overall metrics, and the success rate over
     the last LAST_ACTIONS training actions (None without training)."""
-    from romannet.bench.training_counts import last_rate
+    from romannet.analyse.training_counts import last_rate
 
     overall = report["overall"]
     return {**{m: overall.get(m) for m in EVAL_METRICS},

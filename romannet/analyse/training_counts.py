@@ -2,17 +2,16 @@
 actions, successful actions per block of 50 in order, action success over the last 500, episodes (completed)
 and, for stacking, the highest stack each episode reached.
 
-    python -m romannet.bench.training_counts runs/stack-h4 --json
+    romannet analyse training-counts runs/stack-h4 --json
 
 Reads every recorded `/transition` of the run's episodes (what each actor sent: action, success, heightmaps,
 how the episode ended), all actors together in order of their end time. The highest stack of an episode is
 the tallest common.stack.stack_height (as the simulator's reward measures it) of the heightmaps after its
-actions, counted for every episode, with the one the budget cut short. Exit status 2 when a file is not a readable episode.
+actions, counted for every episode, with the one the budget cut short.
 """
 
 from __future__ import annotations
 
-import sys
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -20,7 +19,7 @@ from pathlib import Path
 
 from romannet.common.stack import stack_height
 
-from .episode_phases import phase_parser, recorded_number, recorded_transitions, run_phases
+from .phases import recorded_number, recorded_transitions
 
 
 @dataclass(frozen=True)
@@ -91,16 +90,6 @@ def summarize(records: Iterable[Recorded], block: int = 50, last: int = 500) -> 
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = phase_parser(__doc__.split("\n")[0])
-    p.add_argument("--block", type=int, default=50, help="actions per block of the successful-action counts")
-    p.add_argument("--last", type=int, default=500, help="action success over this many last actions")
-    args = p.parse_args(argv)
-    if args.block < 1 or args.last < 1:
-        p.error(f"--block and --last must be at least 1; got {args.block}, {args.last}")
-    return run_phases(args, lambda files: summarize(
-        (r for f in files for r in episode_records(f)), args.block, args.last))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def phase_summary(files: list[Path], block: int, last: int) -> dict:
+    """summarize() over every recorded action of the given episode files."""
+    return summarize((r for f in files for r in episode_records(f)), block, last)

@@ -1,6 +1,6 @@
 """Where a run's picks land on the objects: offset from the object's centre along and across the closing axis.
 
-    python -m romannet.bench.pick_offsets runs/stack-h4 --split 20 --json
+    romannet analyse pick-offsets runs/stack-h4 --split 20 --json
 
 A parallel-jaw pick of a box-like object (the stacking cubes, the toy blocks) succeeds when the fingers
 straddle it: the pick pixel must be near the object's centre ALONG the finger-closing axis (a 5 cm cube in
@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import math
 import statistics
-import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .episode_phases import phase_parser, recorded_number, recorded_transitions, run_phases
+from .phases import recorded_number, recorded_transitions
 
 MAX_GAP_PX = 8  # a pick pixel this close to an object (but off it) is still measured against that object
 ANGLE_BINS_DEG = ((0, 10), (10, 20), (20, 30), (30, 45.01))
@@ -120,15 +119,6 @@ def episode_picks(path: Path, min_height_m: float) -> list[dict]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = phase_parser(__doc__.split("\n")[0])
-    p.add_argument("--min-height", type=float, default=0.02, help="object pixels are higher than this (m)")
-    p.add_argument("--max-area-cm2", type=float, default=35.0,
-                   help="larger blobs (stacks, touching objects) are left out of the medians (default 35)")
-    args = p.parse_args(argv)
-    return run_phases(args, lambda files: summarize(
-        (pick for f in files for pick in episode_picks(f, args.min_height)), args.max_area_cm2))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def phase_summary(files: list[Path], min_height_m: float, max_area_cm2: float) -> dict:
+    """summarize() over every recorded pick of the given episode files."""
+    return summarize((pick for f in files for pick in episode_picks(f, min_height_m)), max_area_cm2)

@@ -1,12 +1,9 @@
-"""The command line the run analyses share (repeated_failures, pick_offsets): a run's recorded episodes,
-split into training phases by episode number, one result per phase, printed as JSON or a line each."""
+"""What the run diagnostics share: a run's recorded episodes, read back as the actor sent them and split
+into training phases by episode number, one result per phase."""
 
 from __future__ import annotations
 
-import argparse
-import json
 import re
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -59,24 +56,8 @@ def split_phases(files: list[Path], split: int) -> dict[str, list[Path]]:
             f"episodes >= {split}": [f for f in files if episode_index(f) >= split]}
 
 
-def phase_parser(description: str) -> argparse.ArgumentParser:
-    """run_dir, --split and --json; the caller adds its own options."""
-    p = argparse.ArgumentParser(description=description)
-    p.add_argument("run_dir", help="a run directory (its episodes/) or a directory of episode files")
-    p.add_argument("--split", type=int, default=0, help="first episode index of the second phase (0: one phase)")
-    p.add_argument("--json", action="store_true")
-    return p
-
-
-def run_phases(args: argparse.Namespace, per_phase: Callable[[list[Path]], dict]) -> int:
-    """per_phase(files) of each phase of args.run_dir, printed; exit status 2 (and the file's error on stderr)
-    when a file is not a readable episode."""
-    root = Path(args.run_dir)
-    try:
-        files = episode_paths([root / "episodes" if (root / "episodes").is_dir() else root])
-        out = {name: per_phase(group) for name, group in split_phases(files, args.split).items()}
-    except EpisodeFileError as err:
-        print(err, file=sys.stderr)
-        return 2
-    print(json.dumps(out, indent=2) if args.json else "\n".join(f"{k}: {v}" for k, v in out.items()))
-    return 0
+def by_phase(run_dir: Path, split: int, per_phase: Callable[[list[Path]], dict]) -> dict:
+    """{phase name: per_phase(its files)} over run_dir/episodes (or run_dir itself: a directory of episode
+    files, or one file); EpisodeFileError names a path that is missing or a file that is not an episode."""
+    files = episode_paths([run_dir / "episodes" if (run_dir / "episodes").is_dir() else run_dir])
+    return {name: per_phase(group) for name, group in split_phases(files, split).items()}

@@ -1,6 +1,6 @@
 """How often the greedy policy repeats the action that just failed, per training phase of a run.
 
-    python -m romannet.bench.repeated_failures runs/clutter --split 52 --json
+    romannet analyse repeated-failures runs/clutter --split 52 --json
 
 A failed pick or push leaves the scene as it was, so a greedy policy whose weights have not changed since
 picks the same pixel again. This reads the recorded episodes (`/step` records: primitive, pixel, explored,
@@ -12,16 +12,27 @@ many of those repeats ran on the same weights version. Prints one JSON object (o
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
-from romannet.common.episode_file import read_episode
+from romannet.common.episode_file import STEP_TOPIC, EpisodeFileError, read_episode
 
-from .episode_phases import phase_parser, run_phases
+STEP_FIELDS = ("primitive", "row", "col", "explored", "success", "weights_version")  # what the count reads
 
 
 def _steps(path: Path) -> list[dict]:
-    return [json.loads(m.data) for m in read_episode(path, topics=["/step"]).of("/step")]
+    """The `/step` records of one episode file; EpisodeFileError for a record that is not a JSON object or
+    lacks a field the count reads, so a foreign or older recording is named instead of failing mid-count."""
+    out = []
+    for message in read_episode(path, topics=[STEP_TOPIC]).of(STEP_TOPIC):
+        try:
+            record = json.loads(message.data)
+        except ValueError as err:  # not JSON, or not UTF-8
+            raise EpisodeFileError(path, f"a /step record is not JSON ({err})") from err
+        missing = [k for k in STEP_FIELDS if not isinstance(record, dict) or k not in record]
+        if missing:
+            raise EpisodeFileError(path, f"a /step record lacks {', '.join(missing)}")
+        out.append(record)
+    return out
 
 
 def phase_counts(files: list[Path]) -> dict:
@@ -50,11 +61,3 @@ def count_repeats(episodes: list[list[dict]]) -> dict:
             "repeat_rate": repeats / greedy_after_failure if greedy_after_failure else None,
             "repeats_on_same_weights": repeats_same_weights}
 
-
-def main(argv: list[str] | None = None) -> int:
-    args = phase_parser(__doc__.split("\n")[0]).parse_args(argv)
-    return run_phases(args, phase_counts)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

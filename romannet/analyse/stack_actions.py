@@ -1,6 +1,6 @@
 """Where a stacking run's picks and places land: on the table, on a lone cube or on top of the stack.
 
-    python -m romannet.bench.stack_actions runs/stack-h4 --split 5 --json
+    romannet analyse stack-actions runs/stack-h4 --split 5 --json
 
 The paper's TPG reward gives 0 to an action that reverses progress, so a policy should learn not to pick
 cubes off the stack it is building, and to place on the stack's top. This reads a run's recorded episodes
@@ -15,7 +15,6 @@ greedy places went to a stack top (and raised it). Prints one JSON object (or a 
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from romannet.common.stack import stack_height
 
-from .episode_phases import phase_parser, recorded_number, recorded_transitions, run_phases
+from .phases import recorded_number, recorded_transitions
 
 
 def cubes_under(depth_hm: np.ndarray, row: int, col: int, cube_size_m: float, radius_px: int) -> int:
@@ -88,16 +87,6 @@ def summarize(actions: Iterable[dict]) -> dict:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = phase_parser(__doc__.split("\n")[0])
-    p.add_argument("--radius-m", type=float, default=0.005,
-                   help="cubes under an action: the tallest point within this distance of its pixel (m)")
-    args = p.parse_args(argv)
-    if not args.radius_m >= 0:
-        p.error(f"--radius-m must be >= 0; got {args.radius_m}")
-    return run_phases(args, lambda files: summarize(
-        a for f in files for a in episode_actions(f, args.radius_m)))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def phase_summary(files: list[Path], radius_m: float) -> dict:
+    """summarize() over every recorded pick and place of the given episode files."""
+    return summarize(a for f in files for a in episode_actions(f, radius_m))

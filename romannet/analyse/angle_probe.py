@@ -1,11 +1,11 @@
 """What a checkpoint's pick rotation head says about cubes: its angle at every lone cube, and at its trained picks.
 
-    python -m romannet.bench.angle_probe runs/stack-h4 [--checkpoint DIR] [--episodes 12] [--json]
+    romannet analyse angle-probe runs/stack-h4 [--checkpoint DIR] [--episodes 12] [--json]
 
 Two questions about the head that chooses a pick's angle, asked of recorded scenes, not of the policy's choices:
 - At a lone cube's centre in the first recorded state of each probed episode (objects found as connected
   heightmap blobs above --min-height whose footprint is 0.5-1.5 x the recorded task.cube_size_m squared),
-  how far is the head's closing axis from the cube's faces (bench.pick_offsets.pick_offset, 0-45 deg)? Mean
+  how far is the head's closing axis from the cube's faces (pick_offsets.pick_offset, 0-45 deg)? Mean
   cos 4(angle): 1 = square to every cube, -1 = on every diagonal, 0 = no preference.
 - At the executed pixel of the recorded successful picks (what the head was trained toward), how far is its
   angle from the executed one, modulo 90 deg (a cube's symmetry; mean cos 4(difference) 1 = the same angle)?
@@ -18,11 +18,8 @@ Episodes probed: up to --episodes, spread evenly over the run. Prints one JSON o
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import statistics
-import sys
 from pathlib import Path
 
 import cv2
@@ -30,13 +27,13 @@ import numpy as np
 import torch
 
 from romannet.common.config import load_config
-from romannet.common.episode_file import EpisodeFileError, episode_paths
+from romannet.common.episode_file import episode_paths
 from romannet.common.model import RoManNet, decode_rotation, load_tensors, preprocess
 from romannet.common.wire_messages import TransitionMsg
-from romannet.evaluate.runner import load_model_tensors
 from romannet.learner.checkpoint import latest_checkpoint
+from romannet.learner.ckpt_integrity import read_verified
 
-from .episode_phases import recorded_number, recorded_transitions
+from .phases import recorded_number, recorded_transitions
 from .pick_offsets import mean_cos4, pick_offset
 
 
@@ -109,33 +106,15 @@ def spread(files: list[Path], n: int) -> list[Path]:
     return [files[round(i * (len(files) - 1) / (n - 1))] for i in range(n)]
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("run_dir", help="a run directory (its config.toml, checkpoints/ and episodes/)")
-    p.add_argument("--checkpoint", help="a ckpt-* directory (default: the run's latest)")
-    p.add_argument("--episodes", type=int, default=12, help="episodes probed, spread over the run (default 12)")
-    p.add_argument("--min-height", type=float, default=0.02, help="object pixels are higher than this (m)")
-    p.add_argument("--json", action="store_true")
-    args = p.parse_args(argv)
-    if args.episodes < 1:
-        p.error("--episodes must be >= 1")
-    run = Path(args.run_dir)
-    try:
-        ckpt = Path(args.checkpoint) if args.checkpoint else latest_checkpoint(run)
-        if ckpt is None:
-            raise FileNotFoundError(f"no checkpoint in {run / 'checkpoints'}")
-        cfg = load_config(run / "config.toml")
-        model = RoManNet(cfg.model)
-        load_tensors(model, load_model_tensors(ckpt))
-        model.eval()
-        files = spread(episode_paths([run / "episodes"]), args.episodes)
-        out = {"checkpoint": str(ckpt), **probe(model, files, args.min_height)}
-    except (OSError, ValueError, EpisodeFileError) as err:
-        print(f"angle_probe: {err}", file=sys.stderr)
-        return 2
-    print(json.dumps(out, indent=2) if args.json else "\n".join(f"{k}: {v}" for k, v in out.items()))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def probe_run(run: Path, checkpoint: Path | None, episodes: int, min_height_m: float) -> dict:
+    """probe() of a checkpoint (default: the run's latest) over up to `episodes` of the run's episode files,
+    spread over the run, with the checkpoint it read. FileNotFoundError without a checkpoint."""
+    ckpt = checkpoint if checkpoint is not None else latest_checkpoint(run)
+    if ckpt is None:
+        raise FileNotFoundError(f"no checkpoint in {run / 'checkpoints'}")
+    cfg = load_config(run / "config.toml")
+    model = RoManNet(cfg.model)
+    load_tensors(model, read_verified(ckpt).model_tensors())  # verified, no pickle: what eval loads
+    model.eval()
+    files = spread(episode_paths([run / "episodes"]), episodes)
+    return {"checkpoint": str(ckpt), **probe(model, files, min_height_m)}
