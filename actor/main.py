@@ -37,7 +37,7 @@ from romannet.common.weights_client import ZenohWeightsSource
 from romannet.common.zenoh_limits import FLEET_MAX_MESSAGE_BYTES, limit_messages
 from romannet.common.zenoh_session import make_config, open_session
 
-from .service import ActorPaths, actor_section, read_next_episode, run_actor
+from .service import ActorPaths, read_next_episode, run_actor
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ def resolve_actor_config(cfg: Config, args: argparse.Namespace) -> ActorConfig:
     """The [actor] section with the command line's --actor-id / --max-actions / --episodes applied."""
     changes = {name: value for name, value in (("actor_id", args.actor_id), ("max_actions", args.max_actions),
                                                ("episodes", args.episodes)) if value is not None}
-    return dataclasses.replace(actor_section(cfg), **changes)  # validated again by __post_init__
+    return dataclasses.replace(cfg.actor, **changes)  # validated again by __post_init__
 
 
 def build_env(cfg: Config, robot: str = "sim", camera: str | None = None) -> Env:

@@ -21,6 +21,7 @@ from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 
 from romannet.common.config import Config
+from romannet.common.interfaces import Env
 
 TF_TOPIC, CALIBRATION_TOPIC = "/tf", "/camera/calibration"
 WORLD, CAMERA, HEIGHTMAP = "world", "camera", "heightmap"
@@ -38,16 +39,15 @@ class SceneFrames:
     height: int = 0
 
 
-def scene_frames_of(env: Any, cfg: Config) -> SceneFrames:
+def scene_frames_of(env: Env, cfg: Config) -> SceneFrames:
     """The frames of an actor's environment: the simulator's camera pose and intrinsics, or a real robot's
     camera-to-base calibration (its intrinsics come from the device with each frame: not recorded here)."""
     ws = cfg.workspace
     origin = (ws.x_min_m, ws.y_min_m, ws.z_min_m)
-    scene = getattr(env, "scene", None)
-    if scene is not None and getattr(scene, "T_world_cam", None) is not None:
-        return SceneFrames(origin, np.asarray(scene.T_world_cam, float), np.asarray(scene.intrinsics, float),
-                           cfg.camera.width_px, cfg.camera.height_px)
-    T = getattr(env, "T_base_cam", None)
+    T, K = env.camera_pose()
+    if T is not None and K is not None:
+        return SceneFrames(origin, np.asarray(T, float), np.asarray(K, float), cfg.camera.width_px,
+                           cfg.camera.height_px)
     return SceneFrames(origin, None if T is None else np.asarray(T, float))
 
 

@@ -27,7 +27,6 @@ from romannet.common import romannet_pb2 as pb
 from romannet.common.errors import DecodeError
 from romannet.common.interfaces import ReplayClient
 from romannet.common.replay_client import refused_for_good
-from romannet.common.wire import InsertAckMsg, decode_transition
 from romannet.common.zenoh_session import RemoteError
 
 from .spool import Spool
@@ -83,8 +82,7 @@ def spool_pause(stats: SenderStats, full: str) -> tuple[str, str]:
 
 
 class Sender:
-    """Background thread sending `spool` items through `client` (a ReplayClient; its insert_encoded is used
-    when it has one, which saves decoding and re-encoding the PNG heightmaps)."""
+    """Background thread sending `spool` items, encoded transitions, through `client.insert_encoded`."""
 
     def __init__(self, spool: Spool, client: ReplayClient, insert_timeout_s: float = 10.0,
                  backoff_initial_s: float = 0.5, backoff_max_s: float = 10.0):
@@ -149,12 +147,6 @@ class Sender:
             if outcome == "failed":
                 backoff_s = min(backoff_s * 2.0, self.backoff_max_s)
 
-    def _insert(self, data: bytes) -> InsertAckMsg:
-        insert_encoded = getattr(self.client, "insert_encoded", None)
-        if insert_encoded is not None:
-            return insert_encoded(data, timeout_s=self.insert_timeout_s)
-        return self.client.insert(decode_transition(data), timeout_s=self.insert_timeout_s)
-
     def _send(self, seq: int) -> str:
         """One attempt for item seq: "settled" (acknowledged or rejected), "paced" (the server's rate limiter
         held it back: resend soon) or "failed" (resend after a backoff)."""
@@ -168,7 +160,7 @@ class Sender:
         with self._lock:
             self._stats.sent += 1
         try:
-            ack = self._insert(data)
+            ack = self.client.insert_encoded(data, timeout_s=self.insert_timeout_s)
         except DecodeError as err:  # only the in-process path decodes here: the bytes are corrupt
             self._reject(seq, key_text, f"undecodable: {err}")
             return "settled"

@@ -102,12 +102,6 @@ class ActorPaths:
                    Path(acfg.mcap_dir) if acfg.mcap_dir else run_dir / "episodes" / acfg.actor_id)
 
 
-def actor_section(cfg: Config) -> ActorConfig:
-    """The root config's `actor` section (defaults where the root Config has none)."""
-    section = getattr(cfg, "actor", None)
-    return section if isinstance(section, ActorConfig) else ActorConfig()
-
-
 def episode_seed(seed: int, actor_id: str, index: int) -> int:
     """Scene seed of an actor's episode `index`: reproducible, different for every actor and episode."""
     return int(np.random.SeedSequence([seed, zlib.crc32(actor_id.encode()), index]).generate_state(1)[0])
@@ -269,7 +263,7 @@ class ActorLoop:
         The robot never moves by itself after a stop: an operator clears it on the teach pendant, makes the
         cell safe, then creates the resume file; the environment then checks the controller is ready.
         """
-        reason = getattr(self.env, "paused", "")
+        reason = self.env.paused
         if not reason:
             return True
         self.paths.resume.unlink(missing_ok=True)  # a request from before this stop does not count
@@ -281,7 +275,7 @@ class ActorLoop:
         while not self.stop.is_set():
             if self.paths.resume.exists():
                 self.paths.resume.unlink(missing_ok=True)
-                if self.env.try_resume():  # type: ignore[attr-defined]
+                if self.env.try_resume():
                     log.info("actor resumed by the operator")
                     self.stats.paused, self.stats.pause_kind, self.stats.pause_reason = False, "", ""
                     self.stats.state = "running"
@@ -306,7 +300,7 @@ class ActorLoop:
                 try:
                     self.run_episode()
                 except RobotError as err:  # a robot stop before the episode's first action: pause, not crash
-                    if not getattr(self.env, "paused", ""):
+                    if not self.env.paused:
                         raise
                     log.error("the episode could not start: %s", err)
         finally:
@@ -453,5 +447,5 @@ def run_actor(cfg: Config, run_dir: str | Path, env: Env, replay_client: ReplayC
     owns env, replay_client and weights_source (and closes them); the spool, sender and engine are closed here.
     """
     loop = ActorLoop(cfg, run_dir, env, replay_client, weights_source, stop_event,
-                     actor_cfg or actor_section(cfg), engine)
+                     actor_cfg or cfg.actor, engine)
     return loop.run()

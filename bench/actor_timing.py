@@ -104,7 +104,7 @@ def measure_actor_time_shares(actions: int = 30, robot: str = "gripper", resolut
                 client = ZenohReplayClient(session, run_id, expected_shape=(ws.height_px, ws.width_px))
                 if not client.wait_until_ready(120.0):
                     raise RuntimeError("the replay server did not come up within 120 s")
-                acfg = service.actor_section(cfg)
+                acfg = cfg.actor
                 acfg = dataclasses.replace(acfg, max_actions=actions)
                 with contextlib.ExitStack() as stack:
                     for obj, attr, name in (

@@ -62,9 +62,12 @@ class StepResult:
 
 @runtime_checkable
 class Env(Protocol):
-    """A manipulation environment: the PyBullet simulator now, real robots later."""
+    """A manipulation environment: the PyBullet simulator or a real robot."""
 
     primitives: tuple[str, ...]
+    # "" while the environment may act, else why it stopped (a real robot's protective stop): the actor then
+    # waits for an operator and try_resume(). The simulator never pauses.
+    paused: str
 
     def reset(self, seed: int | None = None) -> Observation:
         """Start a new episode (a new scene from `seed`) and return the first observation."""
@@ -78,6 +81,15 @@ class Env(Protocol):
         """Release the simulator / disconnect the robot. Idempotent."""
         ...
 
+    def try_resume(self) -> bool:
+        """After an operator's resume request: True (and `paused` cleared) if the environment can act again."""
+        ...
+
+    def camera_pose(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(T_world_cam 4x4, intrinsics 3x3) of the camera over the workspace, None where unknown; episodes
+        record them so a player can place the camera (a real camera's intrinsics come with each frame)."""
+        ...
+
 
 @runtime_checkable
 class ReplayClient(Protocol):
@@ -85,6 +97,11 @@ class ReplayClient(Protocol):
 
     def insert(self, transition: TransitionMsg, timeout_s: float = 10.0) -> InsertAckMsg:
         """Insert; returns only after the server has written the transition durably (or raises)."""
+        ...
+
+    def insert_encoded(self, data: bytes, timeout_s: float = 10.0) -> InsertAckMsg:
+        """insert() of a transition already encoded with common.wire.encode_transition: the actor's spool
+        holds the bytes, and a Zenoh client sends them without decoding and re-encoding the PNG heightmaps."""
         ...
 
     def sample(self, batch_size: int, timeout_s: float = 10.0) -> SampleBatchMsg:

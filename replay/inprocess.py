@@ -27,6 +27,10 @@ class InProcessReplayClient:
         """Insert; returns after the transition is durable (accepted/duplicate) or rejected."""
         return self.store.insert(transition, timeout_s=timeout_s)
 
+    def insert_encoded(self, data: bytes, timeout_s: float = 10.0) -> InsertAckMsg:
+        """insert() of encode_transition bytes: decoded here, as the store takes transitions."""
+        return self.insert(decode_transition(data), timeout_s)
+
     def sample(self, batch_size: int, timeout_s: float = 10.0) -> SampleBatchMsg:
         """A prioritized batch with decoded, validated transitions (as the Zenoh client returns them)."""
         batch = self.store.sample(batch_size, timeout_s=timeout_s)

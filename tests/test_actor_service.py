@@ -157,6 +157,9 @@ class DownClient:
     def insert(self, transition, timeout_s: float = 10.0):
         raise TimeoutError("no reply (server down)")
 
+    def insert_encoded(self, data: bytes, timeout_s: float = 10.0):
+        raise TimeoutError("no reply (server down)")
+
 
 def _wait_until_paused(status_path: Path, timeout_s: float = 60.0) -> dict:
     """The actor's status once it says paused (fails the test after timeout_s)."""
@@ -224,6 +227,10 @@ class HangingThenDownClient:
         self.give_up = threading.Event()
 
     def insert(self, transition, timeout_s: float = 10.0):
+        self.give_up.wait(60)
+        raise NoReplyError("no reply (server died)")
+
+    def insert_encoded(self, data: bytes, timeout_s: float = 10.0):
         self.give_up.wait(60)
         raise NoReplyError("no reply (server died)")
 

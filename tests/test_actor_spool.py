@@ -16,7 +16,7 @@ from _replay_helpers import tr
 from romannet.actor.sender import Sender, SenderStats, item_key, spool_pause
 from romannet.actor.spool import Spool
 from romannet.common.replay_client import RateLimitedError
-from romannet.common.wire import InsertAckMsg, TransitionMsg, encode_transition
+from romannet.common.wire import InsertAckMsg, TransitionMsg, decode_transition, encode_transition
 from romannet.common.zenoh_session import NoReplyError, RemoteError
 from romannet.replay.inprocess import InProcessReplayClient
 from romannet.replay.store import ReplayStore
@@ -52,11 +52,17 @@ class FlakyClient:
                 raise NoReplyError("no reply (simulated outage)")
         return self.inner.insert(transition, timeout_s)
 
+    def insert_encoded(self, data: bytes, timeout_s: float = 10.0) -> InsertAckMsg:
+        return self.insert(decode_transition(data), timeout_s)
+
 
 class DownClient:
     """A replay server that never answers."""
 
     def insert(self, transition: TransitionMsg, timeout_s: float = 10.0) -> InsertAckMsg:
+        raise NoReplyError("no reply (server down)")
+
+    def insert_encoded(self, data: bytes, timeout_s: float = 10.0) -> InsertAckMsg:
         raise NoReplyError("no reply (server down)")
 
 
@@ -162,7 +168,7 @@ class ErrorReplyClient:
         return InsertAckMsg(actor, episode, step, "accepted", item_id=self.calls)
 
     def insert(self, transition: TransitionMsg, timeout_s: float = 10.0) -> InsertAckMsg:
-        raise AssertionError("the sender must use insert_encoded when the client has it")
+        raise AssertionError("the sender sends the spool's bytes with insert_encoded")
 
 
 # Only the server's bad-input tokens are final; a queue that is full, a crash in a handler, an error token

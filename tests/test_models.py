@@ -309,6 +309,9 @@ class _EmptyReplay:
     def insert(self, transition: Any, timeout_s: float = 10.0) -> Any:
         raise AssertionError("the learner does not insert")
 
+    def insert_encoded(self, data: bytes, timeout_s: float = 10.0) -> Any:
+        raise AssertionError("the learner does not insert")
+
 
 def test_learner_init_from_a_package_publishes_its_weights_as_version_0(run, tmp_path):
     out = pack(run[0], _eval_dir(tmp_path / "eval", 3, 2), tmp_path / "models" / "clutter")

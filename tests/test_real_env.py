@@ -30,6 +30,7 @@ from romannet.common.config import Config, load_config
 from romannet.common.config_replay import ReplayConfig
 from romannet.common.configbase import write_toml
 from romannet.common.errors import RobotError
+from romannet.common.interfaces import Env
 from romannet.common.zenoh_session import free_port
 from romannet.replay.inprocess import InProcessReplayClient
 from romannet.replay.store import ReplayStore
@@ -116,6 +117,7 @@ def test_a_stop_while_moving_home_at_reset_pauses_the_environment():
     with fake_drivers(w):
         env = make_env(cfg, w)
         try:
+            assert isinstance(env, Env) and env.paused == ""
             with pytest.raises(RobotError, match="stopped .protective_stop. moving home"):
                 env.reset(0)
             assert "protective_stop" in env.paused and not env.try_resume()

@@ -31,7 +31,7 @@ SMALL = SimConfig(hand="panda", num_objects=2, num_stacking_cubes=2, settle_step
 @pytest.mark.parametrize("kind", ["clutter", "arrangement", "stacking"])
 def test_each_task_resets_to_a_scene_in_the_workspace(kind):
     with SimEnv(task=TaskConfig(kind=kind), sim=SMALL) as env:
-        assert isinstance(env, Env)
+        assert isinstance(env, Env) and env.paused == "" and env.try_resume()  # a simulation never pauses
         obs = env.reset(0)
         assert obs.color_hm.shape == (224, 224, 3) and obs.color_hm.dtype == np.uint8
         assert obs.depth_hm.shape == (224, 224) and obs.depth_hm.dtype == np.float32

@@ -222,6 +222,10 @@ class RealEnv:
         info = {"episode_seed": self.seed, "step": self.steps, "bin": self.source, "stopped": result.stopped}
         return StepResult(self.obs, False, p_before, p_before, 0.0, True, "robot_stopped", result.stopped, info)
 
+    def camera_pose(self) -> tuple[np.ndarray, None]:
+        """Env: the calibrated camera-to-base pose; the device reports its intrinsics with each frame."""
+        return self.T_base_cam, None
+
     def try_resume(self) -> bool:
         """After an operator's resume request: True (pause lifted) if the robot can move again."""
         if not self.paused:

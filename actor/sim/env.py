@@ -60,6 +60,7 @@ class SimEnv:
         self.reward_cfg = reward or RewardConfig()
         self.sim = sim or SimConfig()
         self.primitives: tuple[str, ...] = self.task.primitives
+        self.paused = ""  # Env: a simulation never stops for an operator
         self.task_def = task_def(self.task, self.sim)
         self.scene = Scene(self.ws, self.cam, self.sim)
         self.arm: Hand | None = None  # the Panda arm, or the floating hand (sim.robot = "gripper")
@@ -108,6 +109,14 @@ class SimEnv:
         if self.arm is not None:
             self.arm.close()
         self.scene.close()
+
+    def try_resume(self) -> bool:
+        """Env: the simulator is never paused, so it can always act."""
+        return True
+
+    def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Env: the simulated camera's pose and intrinsics."""
+        return self.scene.T_world_cam, self.scene.intrinsics
 
     def __enter__(self) -> SimEnv:
         return self
