@@ -161,7 +161,7 @@ def test_bench_faults_help_describes_the_faults_benchmark() -> None:
     assert "--inserts" not in out.stdout  # only the options this benchmark reads
 
 
-def test_every_benchmark_and_deploy_tool_has_a_description_and_an_example() -> None:
+def test_every_benchmark_deploy_tool_and_diagnostic_has_a_description_and_an_example() -> None:
     # In-process (the parsers `romannet` builds): one process per sub-command would cost seconds each.
     from romannet.cli import build_parser
     from romannet.cli_parser import chosen_parser
@@ -169,6 +169,8 @@ def test_every_benchmark_and_deploy_tool_has_a_description_and_an_example() -> N
     parser = build_parser()
     tools = [("bench", b) for b in ("inference", "replay", "sim", "learner", "system", "pick-geometry", "faults")]
     tools += [("deploy", t) for t in ("certs", "configs", "check")]
+    tools += [("analyse", w) for w in ("pick-offsets", "stack-actions", "repeated-failures", "training-counts",
+                                       "angle-probe")]
     for verb, tool in tools:
         args = argparse.Namespace(verb=verb, what=tool, tool=tool)
         text = chosen_parser(parser, args).format_help()
