@@ -222,9 +222,9 @@ class ZenohWeightsSource:
                             self._pending = None
                             self._counts["announced_held"] += 1  # the push brought it
                             continue
-                        if self._counts["pushed"] and waited_for != pending.version:
+                        if (pending.pushed or self._counts["pushed"]) and waited_for != pending.version:
                             # Zenoh calls each subscriber on its own thread, so the announcement may come
-                            # first; from a learner that pushes, give its data a moment before fetching.
+                            # first, even of the first version: give pushed data a moment before fetching.
                             waited_for = pending.version
                             self._wake.wait(_PUSH_GRACE_S)
                             continue

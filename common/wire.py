@@ -250,7 +250,7 @@ def decode_transition(data: bytes, expected_shape: tuple[int, int] | None = None
 def encode_weights_announcement(msg: WeightsAnnouncementMsg) -> bytes:
     """Protobuf bytes of a weights announcement."""
     out = pb.WeightsAnnouncement(version=msg.version, sha256_hex=msg.sha256_hex, size_bytes=msg.size_bytes,
-                                 created_ns=msg.created_ns)
+                                 created_ns=msg.created_ns, pushed=msg.pushed)
     _set_version(out)
     return out.SerializeToString()
 
@@ -260,7 +260,7 @@ def decode_weights_announcement(data: bytes) -> WeightsAnnouncementMsg:
     """Validated weights announcement from bytes."""
     m = _parse(pb.WeightsAnnouncement, data)
     _require(m, ("version", "size_bytes", "created_ns"))
-    return WeightsAnnouncementMsg(m.version, m.sha256_hex, m.size_bytes, m.created_ns)
+    return WeightsAnnouncementMsg(m.version, m.sha256_hex, m.size_bytes, m.created_ns, m.pushed)
 
 
 def encode_weights(msg: WeightsMsg) -> bytes:

@@ -142,12 +142,13 @@ class TransitionMsg:
 
 @dataclass(frozen=True)
 class WeightsAnnouncementMsg:
-    """Announces a new weights version; actors fetch the Weights with a query."""
+    """Announces a new weights version; an actor that did not get the Weights put fetches them with a query."""
 
     version: int
     sha256_hex: str  # of the safetensors bytes
     size_bytes: int
     created_ns: int  # ns since the Unix epoch
+    pushed: bool = False  # the Weights were put just before: worth a moment's wait before a fetch
 
     def __post_init__(self) -> None:
         check_int("version", self.version, 0, UINT64_MAX)

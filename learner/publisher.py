@@ -19,6 +19,7 @@ inside a Zenoh callback would stall every other message of the session.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import queue
 import threading
@@ -75,6 +76,7 @@ class WeightsPublisher:
             raise ValueError(f"weights version {version} is not newer than the published {current}: "
                              "versions must strictly increase")
         weights, announcement = make_weights(version, to_wire(tensors, self.wire_dtype))
+        announcement = dataclasses.replace(announcement, pushed=self.push)
         encoded = wire.encode_weights(weights)
         with self._lock:
             self._encoded, self._announcement = encoded, announcement

@@ -6,6 +6,7 @@ the actors are clients of it, so everything goes through the router as on a flee
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -144,3 +145,30 @@ def test_bad_pushes_are_refused_in_one_line_each_and_the_weights_stay(caplog: py
         # The actor still takes the next good version.
         ls.put(KEYS.weights_data, wire.encode_weights(good4), congestion_control=zenoh.CongestionControl.BLOCK)
         assert wait_for(src.poll_weights)[0] == 4
+
+
+def test_an_announcement_that_overtakes_its_pushed_data_waits_for_it_and_an_unpushed_one_is_fetched() -> None:
+    """Zenoh delivers each key on its own thread, so the announcement of even the first version can come
+    before its data: an announcement that says `pushed` waits for the put; one that does not is fetched."""
+    queries: list[str] = []
+    v2, ann2 = make_weights(2, tensors(2))
+
+    def serve(query: zenoh.Query) -> None:
+        queries.append(str(query.parameters))
+        query.reply(KEYS.weights_fetch, wire.encode_weights(v2))
+
+    with fleet(1) as (ls, (acs,)), ZenohWeightsSource(acs, RUN, fetch_timeout_s=5) as src:
+        queryable = ls.declare_queryable(KEYS.weights_fetch, serve)
+        try:
+            wait_subscribed(ls)
+            v1, ann1 = make_weights(1, tensors(1))
+            ls.put(KEYS.weights_announce, wire.encode_weights_announcement(dataclasses.replace(ann1, pushed=True)))
+            time.sleep(0.3)  # the data trails its announcement
+            ls.put(KEYS.weights_data, wire.encode_weights(v1), congestion_control=zenoh.CongestionControl.BLOCK)
+            assert wait_for(src.poll_weights)[0] == 1
+            assert queries == [] and src.stats()["taken_pushed"] == 1
+            ls.put(KEYS.weights_announce, wire.encode_weights_announcement(ann2))  # pushed=False: fetch at once
+            assert wait_for(src.poll_weights)[0] == 2
+            assert queries == ["version=2"] and src.stats()["fetched"] == 1
+        finally:
+            queryable.undeclare()
