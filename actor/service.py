@@ -42,6 +42,7 @@ from romannet.common.configbase import dumps_toml
 from romannet.common.episode_rules import ideal_actions
 from romannet.common.errors import RobotError, RomannetError
 from romannet.common.exploration import NonFiniteQError
+from romannet.common.failure_memory import FailureMemory
 from romannet.common.interfaces import Env, Observation, ReplayClient, StepResult, WeightsSource
 from romannet.common.model import RoManNet, state_dict_to_tensors
 from romannet.common.policy import InferenceEngine, PolicyMaps, decide
@@ -178,6 +179,7 @@ class ActorLoop:
                              acfg.resend_backoff_max_s)
         self.engine = engine or InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
         self.stats = ActorStats(acfg.actor_id, cfg.run_id, explore_rate=cfg.exploration.initial_rate)
+        self.failures = FailureMemory(cfg.exploration.failure_memory_px)  # of the episode under way
         # The last weights that produced finite Q maps (None = the initial ones): what a diverged learner's
         # weights are replaced by.
         self.good_weights: tuple[int, dict[str, torch.Tensor]] | None = None
@@ -324,6 +326,7 @@ class ActorLoop:
         # Exploration draws: reproducible per (seed, actor, episode), independent of the scene's generator.
         rng = np.random.default_rng([self.cfg.seed, zlib.crc32(self.acfg.actor_id.encode()), index, 1])
         obs = self.env.reset(seed)
+        self.failures.reset()
         self.stats.episode_id, self.stats.episode_step = episode_id, 0
         recorder = None
         if self.acfg.record_mcap:
@@ -378,7 +381,7 @@ class ActorLoop:
         args = (obs.color_hm, obs.depth_hm, obs.holding, self.stats.explore_rate, rng, self.env.primitives,
                 self.cfg.exploration)
         try:
-            result = decide(self.engine, *args, return_maps=True)
+            result = decide(self.engine, *args, return_maps=True, avoid=self.failures)
         except NonFiniteQError as err:
             if self.loaded_weights is None:  # the initial weights themselves: nothing to fall back to
                 raise
@@ -392,7 +395,7 @@ class ActorLoop:
             self.engine.load_state(tensors)
             self.loaded_weights, self.stats.weights_version = self.good_weights, good
             self.stats.initial_weights = self.good_weights is None
-            result = decide(self.engine, *args, return_maps=True)
+            result = decide(self.engine, *args, return_maps=True, avoid=self.failures)
         self.good_weights = self.loaded_weights
         return result
 
@@ -412,6 +415,7 @@ class ActorLoop:
         q_ranges = recorder.write_q_maps(maps.q, start_ns) if recorder is not None else {}
         result = self.env.step(action)
         end_ns = max(time.time_ns(), start_ns)
+        self.failures.record(action, result.success)  # before the next decision, which avoids a failure
         following = None
         if not result.done and not self.stop.is_set() and not self._last_action():
             self.swap_policy()

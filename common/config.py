@@ -211,6 +211,10 @@ class ExplorationConfig:
     mask_min_height_m: float = 0.01  # a heightmap pixel above this holds something
     mask_pick_reach_px: int = 5  # a pick this close to something can close on it (1 cm at 2 mm per pixel)
     mask_push_reach_px: int = 25  # a push starting this close to something can meet it (5 cm at 2 mm)
+    # Pixels within this of an action of the same primitive that failed since the episode's last success are
+    # not chosen again (common/failure_memory.py): a greedy policy otherwise repeats a failed pick on the scene
+    # it did not change until the episode ends. 0: off.
+    failure_memory_px: int = 0
     epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
     epsilon_decay: float = 0.9998
     epsilon_min: float = 0.1
@@ -229,7 +233,7 @@ class ExplorationConfig:
                 "must be in [0, 1]")
         require(0.0 < self.mask_min_height_m < 0.2, "exploration.mask_min_height_m", self.mask_min_height_m,
                 "must be in (0, 0.2) m")
-        for name in ("mask_pick_reach_px", "mask_push_reach_px"):
+        for name in ("mask_pick_reach_px", "mask_push_reach_px", "failure_memory_px"):
             require(0 <= getattr(self, name) <= 200, f"exploration.{name}", getattr(self, name), "must be 0..200 px")
         require(0.0 <= self.epsilon_min <= self.epsilon_start <= 1.0, "exploration.epsilon_start",
                 self.epsilon_start, "must satisfy 0 <= epsilon_min <= epsilon_start <= 1")

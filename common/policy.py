@@ -33,6 +33,7 @@ from .action import Action
 from .action_mask import action_masks, masked_q
 from .config import ExplorationConfig, ModelConfig
 from .exploration import select_action
+from .failure_memory import FailureMemory, join_masks
 from .model import GRConvNet, RoManNet, decode_rotation, load_tensors, preprocess
 
 logger = logging.getLogger(__name__)
@@ -294,11 +295,14 @@ def reference_maps(model: RoManNet, color_hm: np.ndarray, depth_hm: np.ndarray,
 
 def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np.ndarray, holding: bool,
            explore_rate: float, rng: np.random.Generator, primitives: Sequence[str],
-           exploration_cfg: ExplorationConfig, return_maps: bool = False) -> Action | tuple[Action, PolicyMaps]:
+           exploration_cfg: ExplorationConfig, return_maps: bool = False,
+           avoid: FailureMemory | None = None) -> Action | tuple[Action, PolicyMaps]:
     """Choose the next action: run the nets allowed now, then argmax or explore (prob. explore_rate).
 
     Holding an object only PlaceNet runs; otherwise PushNet and PickNet (PickNet only when "push" is not in
-    `primitives`). Returns the Action, or (Action, PolicyMaps) when return_maps is True.
+    `primitives`). avoid: the episode's failures since its last success, whose pixels are not chosen again
+    (common/failure_memory.py); the returned maps leave them in, as they are the state's values, not the
+    decision's. Returns the Action, or (Action, PolicyMaps) when return_maps is True.
     """
     nets = nets_to_run(holding, primitives)
     if isinstance(model, InferenceEngine):
@@ -309,5 +313,10 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     if exploration_cfg.action_mask:  # masked pixels sink below every valid Q (V = max Q sees them too)
         masks = action_masks(depth_hm, nets, exploration_cfg)
         maps = PolicyMaps({p: masked_q(q, masks[p]) for p, q in maps.q.items()}, maps.angle)
-    action = select_action(maps.q, maps.angle, explore_rate, exploration_cfg, rng, masks)
+    chosen_from, chosen_masks = maps.q, masks
+    avoided = None if avoid is None else avoid.masks(nets, depth_hm.shape)
+    if avoided is not None:
+        chosen_masks = join_masks(masks, avoided)
+        chosen_from = {p: masked_q(q, chosen_masks[p]) for p, q in maps.q.items()}
+    action = select_action(chosen_from, maps.angle, explore_rate, exploration_cfg, rng, chosen_masks)
     return (action, maps) if return_maps else action

@@ -186,6 +186,33 @@ class LaggingLearnerClient(InProcessReplayClient):
         return super().insert(transition, timeout_s)
 
 
+def test_a_greedy_actor_does_not_repeat_a_failed_action_in_its_episode(tmp_path: Path, store: ReplayStore) -> None:
+    """exploration.failure_memory_px: untrained weights, no exploration, the same scene after each failed
+    pick; each decision keeps out of the discs of the episode's failures since its last success."""
+    cfg = load_config(None, [*OVERRIDES, "sim.max_steps=6", "exploration.initial_rate=0.0",
+                             "exploration.failure_memory_px=6", "task.use_push=false"])
+    env = SimEnv.from_config(cfg)
+    client = RecordingClient(store)
+    try:
+        run_actor(cfg, tmp_path, env, client, NoWeights(), threading.Event(), actor_cfg=_acfg(max_actions=12))
+    finally:
+        env.close()
+    failed: dict[str, list[tuple[int, int]]] = {}
+    checked = 0
+    for t in client.accepted:
+        a = t.action
+        assert not a.explored
+        earlier = failed.setdefault(t.episode_id, [])
+        if a.primitive == "pick":
+            assert all((a.row - r) ** 2 + (a.col - c) ** 2 > 6 ** 2 for r, c in earlier), (t.episode_id, t.step)
+            checked += len(earlier)
+        if t.success:
+            earlier.clear()
+        elif a.primitive == "pick":
+            earlier.append((a.row, a.col))
+    assert checked >= 5  # decisions were taken with failures to avoid
+
+
 def test_waiting_for_a_lagging_learner_is_pacing_not_a_pause(tmp_path: Path, cfg: Config, store: ReplayStore,
                                                              caplog: pytest.LogCaptureFixture,
                                                              monkeypatch: pytest.MonkeyPatch) -> None:

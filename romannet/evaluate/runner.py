@@ -33,6 +33,7 @@ from romannet.actor.sim.tasks import objects_in_workspace
 from romannet.common.action import Action
 from romannet.common.config import Config, load_config_text
 from romannet.common.episode_rules import ideal_actions
+from romannet.common.failure_memory import FailureMemory
 from romannet.common.interfaces import Observation
 from romannet.common.model import RoManNet, load_tensors
 from romannet.common.policy import InferenceEngine, decide
@@ -146,11 +147,13 @@ class Worker:
         t.optimizer.state.clear()  # momentum restarts with the weights
         return t
 
-    def act(self, env: SimEnv, obs: Observation, cfg: Config, rng: np.random.Generator) -> Action:
-        """The next action of this evaluation's policy."""
+    def act(self, env: SimEnv, obs: Observation, cfg: Config, rng: np.random.Generator,
+            memory: FailureMemory) -> Action:
+        """The next action of this evaluation's policy (the trained one avoids the run's failures as an
+        actor does, exploration.failure_memory_px)."""
         if self.engine is not None:
             return decide(self.engine, obs.color_hm, obs.depth_hm, obs.holding, 0.0, rng, env.primitives,
-                          cfg.exploration)
+                          cfg.exploration, avoid=memory)
         if self.setup.policy == "oracle":
             return oracle_action(env)
         return random_action(obs.holding, env.primitives, obs.depth_hm.shape, rng)
@@ -177,10 +180,12 @@ class Worker:
         rng = np.random.default_rng(spec.seed)  # greedy: only ties would draw from it; random: every action
         steps: list[StepLog] = []
         end_reason = "step_limit"
+        memory = FailureMemory(cfg.exploration.failure_memory_px)
         for step in range(spec.max_steps):
-            action = self.act(env, obs, cfg, rng)
+            action = self.act(env, obs, cfg, rng, memory)
             t0 = time.time_ns()
             result = env.step(action)
+            memory.record(action, bool(result.success))
             steps.append(StepLog(action.primitive, bool(result.success)))
             if trainer is not None and self.engine is not None:
                 msg = TransitionMsg.from_step(obs, action, result, actor_id="eval",

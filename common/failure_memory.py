@@ -1,0 +1,78 @@
+"""Not repeating a failed action on a scene it did not change: the greedy policy's loop breaker.
+
+    memory = FailureMemory(radius_px=10)       # one per episode; exploration.failure_memory_px
+    action = decide(..., avoid=memory.masks(nets, depth_hm.shape))
+    memory.record(action, success)             # a success clears it; memory.reset() at a new episode
+
+A greedy policy that is not learning sees nearly the same heightmap after a pick that moved nothing, so it
+chooses the same pixel again and again until the episode ends on consecutive failures. The paper's test
+protocol escapes by training within the run (VPG's test-time learning); a robot running frozen weights
+needs the rule at decision time: pixels within radius_px of an action of the same primitive that failed
+since the last success are not chosen (the masks join common/action_mask's: masked_q sinks them, and
+exploration draws among the rest). Any success changed the scene, so it clears the memory.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .action import Action
+
+
+def failure_masks(failed: Iterable[tuple[str, int, int]], primitives: Iterable[str], shape: tuple[int, int],
+                  radius_px: int) -> dict[str, np.ndarray] | None:
+    """{primitive: bool (h, w), False within radius_px of one of its failed (primitive, row, col)}; None
+    when nothing is masked. A map that would lose every pixel keeps them all (the policy must act)."""
+    failed = list(failed)
+    if radius_px <= 0 or not failed:
+        return None
+    rows, cols = np.ogrid[0:shape[0], 0:shape[1]]
+    out: dict[str, np.ndarray] = {}
+    for prim in primitives:
+        mask = np.ones(shape, dtype=bool)
+        for p, r, c in failed:
+            if p == prim:
+                mask &= (rows - r) ** 2 + (cols - c) ** 2 > radius_px ** 2
+        out[prim] = mask if mask.any() else np.ones(shape, dtype=bool)
+    return out if any(not m.all() for m in out.values()) else None
+
+
+def join_masks(masks: Mapping[str, np.ndarray] | None,
+               avoid: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray] | None:
+    """Pixels valid in both (either may be None: no restriction); a primitive left with no valid pixel keeps
+    the first's, so avoiding a failure never leaves the policy without an action."""
+    if avoid is None:
+        return None if masks is None else dict(masks)
+    if masks is None:
+        return dict(avoid)
+    out = {}
+    for prim, mask in masks.items():
+        both = mask & avoid[prim] if prim in avoid else mask
+        out[prim] = both if both.any() else mask
+    return out
+
+
+@dataclass
+class FailureMemory:
+    """The failed actions of the current episode since its last success (module docstring)."""
+
+    radius_px: int
+    failed: list[tuple[str, int, int]] = field(default_factory=list)
+
+    def reset(self) -> None:
+        """A new episode: nothing failed yet."""
+        self.failed.clear()
+
+    def record(self, action: Action, success: bool) -> None:
+        """Remember a failed action; a success changed the scene, so it clears what was remembered."""
+        if success:
+            self.failed.clear()
+        elif self.radius_px > 0:
+            self.failed.append((action.primitive, action.row, action.col))
+
+    def masks(self, primitives: Iterable[str], shape: tuple[int, int]) -> dict[str, np.ndarray] | None:
+        """The pixels the next decision may choose (failure_masks), None when all of them."""
+        return failure_masks(self.failed, primitives, shape, self.radius_px)
