@@ -200,7 +200,7 @@ class ExplorationConfig:
     # A floor under the LAE rate the actors use (VPG's epsilon floor; the recursion itself runs unfloored);
     # 0 = the paper's LAE.
     # LAE follows the loss down: once the nets predict ~0 everywhere and the greedy pick keeps failing on an
-    # empty pixel, the loss and with it the rate go to ~0.01 and nothing new is tried (docs/results-archive.md).
+    # empty pixel, the loss and with it the rate go to ~0.01 and nothing new is tried (docs/journal.md).
     lae_min_rate: float = 0.1
     top_k: int = 10  # action candidates: the top-k local maxima of each allowed net's Q map
     candidate_min_distance_px: int = 5  # local maxima closer than this are one candidate

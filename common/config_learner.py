@@ -39,14 +39,14 @@ class LearnerConfig:
     # Extra weight on the executed pixel's own Huber(Q(s_t, a_t) - Y_t), the paper's L_t, added to the support
     # loss. With "mean" the executed pixel weighs 1/N of an N-pixel support, so a sharp peak of Q, which is
     # where the greedy argmax lands, is trained down only slowly (measured: a failed push's Q fell from 0.7
-    # to 0.43-0.63 in 30 updates on those four items alone, docs/results-archive.md); 1 gives it the paper's weight.
+    # to 0.43-0.63 in 30 updates on those four items alone, docs/journal.md); 1 gives it the paper's weight.
     # 0 = the support loss alone.
     executed_pixel_weight: float = 1.0
     target_network: bool = False  # bootstrap V(s_{t+1}) from a lagged copy instead of the online net
     # Clip V(s_{t+1}) into the range a return can have, [0, largest reward weight / (1 - gamma)]: rewards are
     # >= 0 and <= that weight, so a V outside it is the nets' error. Off = the paper's target. Seen without it:
     # the place net's largest Q in a batch went from 7.6 to -0.4 in nine updates, and a successful pick's
-    # target R + gamma V moves with it, from ~4 to below a failed pick's 0 (docs/results-archive.md).
+    # target R + gamma V moves with it, from ~4 to below a failed pick's 0 (docs/journal.md).
     bootstrap_clip: bool = True
     target_sync_every_updates: int = 100  # copy online -> target every this many updates
     # Take V(s_{t+1}) from the actor's next decision (it runs the same nets on s_{t+1} to act) when its weights

@@ -14,7 +14,7 @@ With model.rotation_harmonics = 2 the head adds the second harmonic (cos 2kθ, s
 trained by regression toward the executed angle, and for a cube two grasps 90 degrees apart are both right;
 in the first harmonic their targets are opposite vectors (2θ and 2θ + π), so the regression averages them
 to ~0 and the decoded angle is whatever the bias says (measured: the stacking policies' greedy pick angle
-stayed within a few degrees of one value for every cube, docs/results-archive.md). In the second harmonic both
+stayed within a few degrees of one value for every cube, docs/journal.md). In the second harmonic both
 grasps have the same target, so it learns the cube's faces; decoding takes θ modulo π/k from it and picks,
 of the two candidates π/k apart, the one the first harmonic prefers (for a cube either is right; for an
 oblong object the first harmonic, which never saw the long-side grasp succeed, tells them apart).

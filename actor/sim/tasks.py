@@ -172,10 +172,10 @@ def stack_height_from_poses(scene: Scene, cube_size_m: float, exclude: int | Non
     it stands on a level-k cube (bottom within half a cube of that cube's top, centres less than a cube apart
     horizontally). Anything else, a cube in the hand, one lifted with it or one resting on it, is not part of
     a stack: counting the highest top instead read a cube carried at 0.5 m as a stack of 10 and ended two
-    training episodes as "done" (docs/results-archive.md). exclude: a body to ignore (the cube the env knows is held).
+    training episodes as "done" (docs/journal.md). exclude: a body to ignore (the cube the env knows is held).
     A cube counts while any of it is over the workspace (its centre within half a cube of the square), where
     the heightmap sees it: the reward measures stacks there (common.stack), and counting centres only left
-    stacks built at the square's edge rewarded by every place but never "done" (docs/results-archive.md).
+    stacks built at the square's edge rewarded by every place but never "done" (docs/journal.md).
     """
     half, z0 = 0.5 * cube_size_m, scene.ws.z_min_m
     # (bottom, top, xy) of each body, read once; sorted from the lowest up, so a supporting cube has its

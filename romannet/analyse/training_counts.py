@@ -1,4 +1,4 @@
-"""A training run's counts, as docs/results-archive.md tabulates them: actions, pick and place success, explored
+"""A training run's counts, as docs/journal.md tabulates them: actions, pick and place success, explored
 actions, successful actions per block of 50 in order, action success over the last 500, episodes (completed)
 and, for stacking, the highest stack each episode reached.
 
