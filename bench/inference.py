@@ -12,7 +12,7 @@
   reference on seeded synthetic heightmaps with blocks (random-init weights with a fixed seed).
 
 Timings interleave the measurements repeat by repeat, so the ratios compare the same machine state
-(this 2-core machine is shared and drifts); medians are reported, minima beside them.
+(a shared machine drifts from minute to minute); medians are reported, minima beside them.
 """
 
 from __future__ import annotations

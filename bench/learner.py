@@ -12,7 +12,7 @@
 
 The batches are 224x224 synthetic clutter scenes (bench.inference.synthetic_scene), half successful picks
 that bootstrap V(s_t+1) through PushNet and PickNet, half failed pushes that do not: the mix a learner sees
-early on. Measurements interleave repeat by repeat (this 2-core machine is shared and drifts); medians of
+early on. Measurements interleave repeat by repeat (a shared machine drifts from minute to minute); medians of
 transitions/s are reported, ratios are taken within the run.
 """
 

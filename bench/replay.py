@@ -3,11 +3,11 @@
 Per workload of 224x224 RGB-D transitions (bench/replay_workloads.py: "sim", real simulator transitions;
 "camera_noise", synthetic scenes with camera noise, ~4x larger), a real `romannet replay` process (fsync
 on) serves a fresh directory and this process plays actors and a learner. Reported per workload (medians
-and ratios from this one run; the 2-core box drifts):
+and ratios from this one run; a shared machine drifts):
 - durable insert throughput of `clients` concurrent actors (each waits for its ack): transitions/s, MB/s,
   insert latency p50/p99, CPU ms per insert in the server and in this (client) process, inserts per
   fsync (the group commit), and other_load_cores: CPU time the machine spent on anything else meanwhile
-  (other processes, hypervisor steal), in cores: this box is shared, and throughput falls as it rises;
+  (other processes, hypervisor steal), in cores: on a shared machine throughput falls as it rises;
 - sample round trip p50/p99 for batch 1 and 8 (ZenohReplayClient.sample_encoded: query to checked reply
   bytes; the learner's PNG decode, which runs on the learner, is reported separately);
 - bytes on disk per stored transition (log segments + snapshot);

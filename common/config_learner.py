@@ -91,7 +91,7 @@ class LearnerConfig:
     checkpoint_every_updates: int = 100
     keep_checkpoints: int = 3  # older checkpoints are deleted after a new one is complete
     # New weights after every update: VPG acts on the net it has just trained, and an actor that keeps its
-    # weights for many actions repeats the action that has just failed (docs/results.md).
+    # weights for many actions repeats the action that has just failed (docs/journal.md).
     publish_every_updates: int = 1
     # dtype of the published weights (common/weights_wire.py): "bf16" halves them and is exact for actors that
     # compute in bf16; "fp32" for a fleet with fp32 actors (CPUs without native bf16); "auto": bf16 when

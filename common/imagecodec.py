@@ -31,9 +31,8 @@ DEPTH_SCALE_M = 1e-5  # metres per unit of the 16-bit depth PNG
 DEPTH_MAX_M = 65535 * DEPTH_SCALE_M  # 0.65535 m, the largest encodable height
 MAX_SIDE_PX = 2048  # largest width or height accepted, in pixels
 MAX_PNG_BYTES = 32 * 1024 * 1024  # a 2048x2048 RGB PNG is at most ~12.6 MB even when incompressible
-# zlib level 1. Measured on synthetic 224x224 heightmaps with camera-like noise (medians, 2-core box):
-# color 89.5 / 88.9 / 86.9 kB and 5.4 / 8.0 / 12.4 ms to encode at levels 1 / 3 / 6, depth 52.0 / 50.1 /
-# 49.0 kB and 3.6 / 5.3 / 16.6 ms: level 6 saves ~5 % of bytes for 2-4x the encode time on the actor.
+# zlib level 1: on noisy heightmaps level 6 saves ~5 % of the bytes for 2-4x the actor's encode time
+# (docs/journal.md, "Measurements behind code comments").
 PNG_COMPRESSION_LEVEL = 1
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -221,7 +221,8 @@ PACKAGE_WEIGHTS = "weights.safetensors"
 PACKAGE_CONFIG = "config.toml"
 PACKAGE_FORMAT = 1
 # BN running statistics stay fp32 in a package: they are 0.3 % of the bytes, and a running variance rounded
-# to bf16's 8 bits moves every normalised activation after it (measured in romannet/models.py's docstring).
+# to bf16's 8 bits moves every normalised activation after it (docs/journal.md, "Measurements behind code
+# comments").
 FP32_IN_PACKAGE = ("running_mean", "running_var")
 # The fields that make the same weights the same function: precision, channels_last and num_threads say how
 # a process computes it, q_head_init only how a fresh net starts, so a run may differ from its source there.
