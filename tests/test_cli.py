@@ -8,8 +8,6 @@ from pathlib import Path
 
 import pytest
 
-from romannet.common.config import Config, load_config
-
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -56,35 +54,6 @@ def test_bad_override_is_one_clear_line_and_exit_2():
 def test_missing_config_file_is_a_clear_error(tmp_path):
     out = romannet("info", "--config", str(tmp_path / "missing.toml"))
     assert out.returncode == 2 and "does not exist" in out.stderr
-
-
-def test_configs_default_toml_is_the_defaults():
-    # If this fails after changing a default, regenerate configs/default.toml from Config().
-    assert load_config(ROOT / "configs" / "default.toml") == Config()
-
-
-def test_configs_default_toml_lists_every_field():
-    # Loading fills missing fields, so equality alone would not notice a field left out of the file.
-    import dataclasses
-
-    import tomllib
-
-    def names(obj: object, prefix: str = "") -> set[str]:
-        out = set()
-        for f in dataclasses.fields(obj):
-            value = getattr(obj, f.name)
-            if dataclasses.is_dataclass(value):
-                out |= names(value, f"{prefix}{f.name}.")
-            elif f.default is not None:  # declared unset (None): named in the file's header instead
-                out.add(f"{prefix}{f.name}")
-        return out
-
-    def keys(table: dict, prefix: str = "") -> set[str]:
-        return set().union(*([keys(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}"}
-                              for k, v in table.items()]))
-
-    listed = keys(tomllib.loads((ROOT / "configs" / "default.toml").read_text()))
-    assert listed == names(Config())
 
 
 def test_local_zenoh_config_opens_a_real_session():
