@@ -66,6 +66,7 @@ def test_bad_input_stops_with_one_line_before_anything_is_written(tmp_path: Path
     other = tmp_path / "other" / "stacking.toml"
     other.parent.mkdir()
     other.write_text(RECIPE.read_text())
+    (other.parent / "clutter.toml").write_text((RECIPE.parent / "clutter.toml").read_text())  # its base
     broken = tmp_path / "broken.toml"
     broken.write_text("[task\nkind = 1\n")
     taken = tmp_path / "taken"
