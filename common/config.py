@@ -21,10 +21,16 @@ from .config_pacing import check_pacing
 from .config_replay import ReplayConfig
 from .config_robot import RealSenseConfig, RobotConfig
 from .config_sim import SimConfig
-from .configbase import apply_overrides, from_dict, read_recipe, require
+from .configbase import apply_overrides, drop_retired, from_dict, read_recipe, require
 from .errors import ConfigError
 
 PRIMITIVES = ("push", "pick", "place")
+# Removed fields and the value that kept their code path off: a saved config (a run's config.toml, a
+# checkpoint, a model package, an MCAP episode) still names them, and loads if it has that value.
+RETIRED: dict[str, Any] = {
+    "actor.demo_actions": 0,
+    "model.dropout": 0.0,
+}
 
 
 @dataclass(frozen=True)
@@ -116,7 +122,6 @@ class ModelConfig:
 
     channels: int = 32  # GR-ConvNet width after the first 9x9 conv (32 gives ~1.9 M parameters per net)
     residual_blocks: int = 5
-    dropout: float = 0.0
     # Rotation head: 1 = (cos k theta, sin k theta) as GR-ConvNet (k = 1 push, 2 pick/place); 2 = also the
     # second harmonic (cos 2k theta, sin 2k theta), which stays trainable when two grasps 90 degrees apart are
     # both right (a cube: the first harmonic's targets cancel there; see common/model.py).
@@ -135,7 +140,6 @@ class ModelConfig:
     def __post_init__(self) -> None:
         require(4 <= self.channels <= 256, "model.channels", self.channels, "must be 4..256")
         require(0 <= self.residual_blocks <= 20, "model.residual_blocks", self.residual_blocks, "must be 0..20")
-        require(0.0 <= self.dropout < 1.0, "model.dropout", self.dropout, "must be in [0, 1)")
         require(self.rotation_harmonics in (1, 2), "model.rotation_harmonics", self.rotation_harmonics,
                 "must be 1 (cos/sin of the angle) or 2 (also its second harmonic)")
         require(self.q_head_init in ("default", "small"), "model.q_head_init", self.q_head_init,
@@ -268,12 +272,18 @@ class Config:
         check_pacing(self.replay, self.learner)
 
 
+def without_retired(sections: dict[str, Any]) -> dict[str, Any]:
+    """Saved config sections (e.g. a checkpoint's) without the RETIRED fields; ConfigError if one is not at the
+    value that kept its code path off."""
+    return drop_retired(sections, RETIRED)
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Defaults, then the TOML file (if given, with its `base` chain: configbase.read_recipe), then
     `section.field=value` overrides, validated."""
     data: dict[str, Any] = read_recipe(path) if path is not None else {}
     data = apply_overrides(data, list(overrides))
-    return from_dict(Config, data)
+    return from_dict(Config, without_retired(data))
 
 
 def load_config_text(text: str, overrides: list[str] | tuple[str, ...] = ()) -> Config:
@@ -283,4 +293,4 @@ def load_config_text(text: str, overrides: list[str] | tuple[str, ...] = ()) -> 
     except tomllib.TOMLDecodeError as err:
         raise ConfigError("config text", text[:40] + ("…" if len(text) > 40 else ""),
                           f"not valid TOML ({err})") from None
-    return from_dict(Config, apply_overrides(data, list(overrides)))
+    return from_dict(Config, without_retired(apply_overrides(data, list(overrides))))

@@ -149,6 +149,25 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
     return merged
 
 
+def drop_retired(data: dict[str, Any], retired: dict[str, Any]) -> dict[str, Any]:
+    """A copy of `data` without the removed fields a saved config may still name (`retired`: `section.field`
+    -> the value that kept the removed code path off): at that value a field is dropped, at any other it is
+    a ConfigError saying the option is gone."""
+    out = _deep_copy(data)
+    for key, kept in retired.items():
+        *sections, name = key.split(".")
+        table: Any = out
+        for section in sections:
+            table = table.get(section) if isinstance(table, dict) else None
+        if not isinstance(table, dict) or name not in table:
+            continue
+        value = table.pop(name)
+        if value != kept:
+            raise ConfigError(key, value, f"this option was removed; only its old default {kept!r} is accepted "
+                              "(the behaviour that was kept): delete the line")
+    return out
+
+
 def _deep_copy(data: dict[str, Any]) -> dict[str, Any]:
     return {k: _deep_copy(v) if isinstance(v, dict) else v for k, v in data.items()}
 

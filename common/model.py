@@ -61,7 +61,7 @@ class ResidualBlock(nn.Module):
 class GRConvNet(nn.Module):
     """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2 * harmonics, h, w): cos, sin, ...)."""
 
-    def __init__(self, channels: int = 32, residual_blocks: int = 5, dropout: float = 0.0, in_channels: int = 4,
+    def __init__(self, channels: int = 32, residual_blocks: int = 5, in_channels: int = 4,
                  rotation_harmonics: int = 1, q_head_scale: float = 1.0):
         super().__init__()
         c = channels
@@ -78,7 +78,6 @@ class GRConvNet(nn.Module):
         self.deconv2 = nn.ConvTranspose2d(2 * c, c, 4, stride=2, padding=1)
         self.bn5 = nn.BatchNorm2d(c)
         self.conv6 = nn.Conv2d(c, c, 9, padding=4)
-        self.dropout = nn.Dropout(p=dropout)
         self.q_head = nn.Conv2d(c, 1, 1)
         self.rot_head = nn.Conv2d(c, 2 * rotation_harmonics, 1)
         if q_head_scale != 1.0:  # model.q_head_init = "small": every Q map starts within a few hundredths of 0
@@ -96,7 +95,7 @@ class GRConvNet(nn.Module):
         x = self.res(x)
         x = torch.relu(self.bn4(self.deconv1(x)))
         x = torch.relu(self.bn5(self.deconv2(x)))
-        x = self.dropout(self.conv6(x))
+        x = self.conv6(x)
         return self.q_head(x)[:, 0], self.rot_head(x)
 
 
@@ -111,8 +110,8 @@ class RoManNet(nn.Module):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.nets = nn.ModuleDict({
-                p: GRConvNet(cfg.channels, cfg.residual_blocks, cfg.dropout,
-                             rotation_harmonics=cfg.rotation_harmonics, q_head_scale=Q_HEAD_SCALES[cfg.q_head_init])
+                p: GRConvNet(cfg.channels, cfg.residual_blocks, rotation_harmonics=cfg.rotation_harmonics,
+                             q_head_scale=Q_HEAD_SCALES[cfg.q_head_init])
                 for p in PRIMITIVES
             })
 

@@ -42,7 +42,7 @@ import numpy as np
 import safetensors.torch
 import torch
 
-from romannet.common.config import Config, ModelConfig, load_config
+from romannet.common.config import Config, ModelConfig, load_config, without_retired
 from romannet.common.errors import RomannetError
 from romannet.common.exploration import ExplorationRate
 from romannet.common.fsutil import fsync_directory
@@ -184,7 +184,7 @@ def load_checkpoint(trainer: Trainer, run_dir: str | Path, path: str | Path | No
 
 
 def _check_configs(trainer: Trainer, ckpt: VerifiedCheckpoint) -> None:
-    saved_cfg, now_cfg = ckpt.state["config"], _configs(trainer)
+    saved_cfg, now_cfg = without_retired(ckpt.state["config"]), _configs(trainer)
     for section in ("model", "task"):
         if saved_cfg.get(section) != now_cfg[section]:
             raise ValueError(f"{ckpt.path} was trained with {section} config {saved_cfg.get(section)}, "
@@ -226,7 +226,7 @@ PACKAGE_FORMAT = 1
 FP32_IN_PACKAGE = ("running_mean", "running_var")
 # The fields that make the same weights the same function: precision, channels_last and num_threads say how
 # a process computes it, q_head_init only how a fresh net starts, so a run may differ from its source there.
-ARCHITECTURE_FIELDS = ("channels", "residual_blocks", "rotation_harmonics", "dropout")
+ARCHITECTURE_FIELDS = ("channels", "residual_blocks", "rotation_harmonics")
 
 
 def to_package_dtypes(tensors: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:

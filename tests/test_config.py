@@ -161,3 +161,29 @@ def test_an_unknown_field_names_the_near_miss():
         load_config(overrides=["learnr.lr=0.1"])
     with pytest.raises(ConfigError, match=r"\[sim\] has: .*hand"):  # nothing close: the section's fields
         load_config(overrides=["sim.zzz=1"])
+
+
+def _other_than(value: object) -> object:
+    return (not value) if isinstance(value, bool) else value + 1  # type: ignore[operator]
+
+
+def test_a_saved_config_naming_a_removed_field_loads_at_its_old_default():
+    """Runs, checkpoints, model packages and MCAP episodes saved every field; a field since removed
+    (common/config.py RETIRED) is dropped at the value that kept its code path off, anything else is one clear
+    error naming the field."""
+    from pathlib import Path
+
+    import tomli_w
+
+    from romannet.common.config import RETIRED, load_config_text, without_retired
+    saved = dumps_toml(Config())
+    for key, kept in RETIRED.items():
+        section, name = key.split(".")
+        assert f"[{section}]\n" in saved, key
+        line = tomli_w.dumps({name: kept})
+        assert load_config_text(saved.replace(f"[{section}]\n", f"[{section}]\n{line}", 1)) == Config()
+        with pytest.raises(ConfigError, match=rf"'{key}' = .*this option was removed"):
+            load_config(overrides=[f"{key}={str(_other_than(kept)).lower()}"])
+    assert without_retired({"model": {"channels": 32, "dropout": 0.0}}) == {"model": {"channels": 32}}
+    for package in sorted((Path(__file__).resolve().parents[1] / "models").glob("*/config.toml")):
+        load_config(package)  # written before some fields were removed

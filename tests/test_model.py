@@ -13,7 +13,6 @@ from romannet.common.errors import ConfigError, DecodeError
 from romannet.common.model import (
     IMAGENET_MEAN,
     IMAGENET_STD,
-    GRConvNet,
     RoManNet,
     decode_angle,
     decode_rotation,
@@ -83,11 +82,6 @@ def test_state_dict_keys_are_stable():
     assert "nets.pick.res.4.conv2.weight" in keys
     assert "nets.place.rot_head.bias" in keys and "nets.place.bn5.running_var" in keys
     assert len(keys) == 3 * 111
-
-
-def test_dropout_is_configurable():
-    net = RoManNet(ModelConfig(dropout=0.3)).nets["push"]
-    assert isinstance(net, GRConvNet) and net.dropout.p == 0.3
 
 
 def test_preprocess_normalisation_values():
