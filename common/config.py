@@ -30,6 +30,7 @@ PRIMITIVES = ("push", "pick", "place")
 RETIRED: dict[str, Any] = {
     "actor.demo_actions": 0,
     "model.dropout": 0.0,
+    "learner.train_rotation_on_success_only": True,
 }
 
 

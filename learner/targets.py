@@ -117,31 +117,29 @@ def rotation_target(angle_rad: float, primitive: str, harmonics: int = 1) -> tup
     return encode_angle(float(angle_rad), primitive, harmonics)
 
 
-def rotation_sign_weight(success: bool, success_only: bool, failure_weight: float) -> tuple[float, float]:
+def rotation_sign_weight(success: bool, failure_weight: float) -> tuple[float, float]:
     """(sign, weight) of one action's rotation target: the head regresses sign * rotation_target, weighted.
 
-    A success: (+1, 1), the executed angle is imitated. A failure: with success_only off, (+1, 1) (imitated
-    too); with it on, (-1, failure_weight): the target is the opposite of the executed angle's encoding
-    (for a pick's second harmonic, 4 theta + pi: the angle 45 degrees away), 0 = not trained (the default).
+    A success: (+1, 1), the executed angle is imitated. A failure, whose angle is not a target to imitate:
+    (-1, failure_weight), the target is the opposite of the executed angle's encoding (for a pick's second
+    harmonic, 4 theta + pi: the angle 45 degrees away), 0 = not trained (the default).
     Why: the head's expected target is then E[(s - b) e^{i k theta}] / E[...] with b = w / (1 + w), i.e. it
     points toward angles that succeed more often than b and away from those that succeed less, whichever
     angles the policy tried; imitating successes alone (b = 0) points toward the policy's own angles even
-    where they succeed rarely. Must be 0 when success_only is off (the two would contradict).
+    where they succeed rarely.
     """
     if not (math.isfinite(failure_weight) and failure_weight >= 0.0):
         raise ValueError(f"failure_weight = {failure_weight!r} must be a non-negative number")
-    if failure_weight and not success_only:
-        raise ValueError("a failure weight needs success_only: failures are either imitated or avoided")
-    if success or not success_only:
+    if success:
         return 1.0, 1.0
     return -1.0, float(failure_weight)
 
 
 def rotation_targets(angles_rad: Sequence[float], successes: Sequence[bool], primitive: str, harmonics: int,
-                     success_only: bool, failure_weight: float) -> tuple[Tensor, Tensor]:
+                     failure_weight: float) -> tuple[Tensor, Tensor]:
     """(targets float32 (k, 2 * harmonics), weights float32 (k,)) of k actions of one primitive: row i is
     sign_i * rotation_target(angle_i), weighted by weight_i, with (sign_i, weight_i) from rotation_sign_weight."""
-    signed = [rotation_sign_weight(ok, success_only, failure_weight) for ok in successes]
+    signed = [rotation_sign_weight(ok, failure_weight) for ok in successes]
     targets = torch.tensor([[sign * v for v in rotation_target(a, primitive, harmonics)]
                             for a, (sign, _) in zip(angles_rad, signed, strict=True)])
     return targets, torch.tensor([w for _, w in signed], dtype=torch.float32)

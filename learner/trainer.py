@@ -337,8 +337,7 @@ class Trainer:
         is_w = torch.tensor(is_weights, device=self.device, dtype=torch.float32)
         q_losses = q_loss(q, g.label, g.support, cfg.huber_delta, cfg.loss_reduction)
         rho, rho_w = rotation_targets([t.action.angle_rad for t in ts], [t.success for t in ts], p,
-                                      self.model.cfg.rotation_harmonics, cfg.train_rotation_on_success_only,
-                                      cfg.rotation_failure_weight)
+                                      self.model.cfg.rotation_harmonics, cfg.rotation_failure_weight)
         rho, rho_w = rho.to(self.device), rho_w.to(self.device)
         rot_losses = (rotation_kernel_loss(rot, rho, rho_w, g.support) if cfg.rotation_support == "kernel"
                       else rotation_pixel_loss(rot[ar, :, g.rows, g.cols], rho, rho_w))

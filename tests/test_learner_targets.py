@@ -86,31 +86,28 @@ def test_push_is_directional():
 
 
 def test_rotation_sign_weight_imitates_successes_and_avoids_failures_when_weighted():
-    assert T.rotation_sign_weight(True, True, 0.0) == (1.0, 1.0)
-    assert T.rotation_sign_weight(True, True, 0.5) == (1.0, 1.0)
-    assert T.rotation_sign_weight(False, True, 0.0) == (-1.0, 0.0)  # the default: failures do not train
-    assert T.rotation_sign_weight(False, True, 0.5) == (-1.0, 0.5)
-    assert T.rotation_sign_weight(False, False, 0.0) == (1.0, 1.0)  # success_only off: failures imitated
-    with pytest.raises(ValueError, match="success_only"):
-        T.rotation_sign_weight(False, False, 0.5)
+    assert T.rotation_sign_weight(True, 0.0) == (1.0, 1.0)
+    assert T.rotation_sign_weight(True, 0.5) == (1.0, 1.0)
+    assert T.rotation_sign_weight(False, 0.0) == (-1.0, 0.0)  # the default: failures do not train
+    assert T.rotation_sign_weight(False, 0.5) == (-1.0, 0.5)
     for bad in (-0.1, math.nan, math.inf):
         with pytest.raises(ValueError, match="non-negative"):
-            T.rotation_sign_weight(True, True, bad)
+            T.rotation_sign_weight(True, bad)
 
 
 def test_rotation_targets_sign_and_weight_each_action():
     # A pick at 0 that succeeded: (cos 0, sin 0); one at pi/4 that failed, failures weighted 0.5: the opposite
     # of (cos pi/2, sin pi/2).
-    targets, weights = T.rotation_targets([0.0, math.pi / 4], [True, False], "pick", 1, True, 0.5)
+    targets, weights = T.rotation_targets([0.0, math.pi / 4], [True, False], "pick", 1, 0.5)
     assert targets.dtype == weights.dtype == torch.float32 and targets.shape == (2, 2)
     np.testing.assert_allclose(targets.numpy(), [[1.0, 0.0], [0.0, -1.0]], atol=1e-7)
     assert weights.tolist() == [1.0, 0.5]
-    # success_only off: a failed push is imitated, at full weight; two harmonics give four values.
-    targets, weights = T.rotation_targets([math.pi / 2], [False], "push", 2, False, 0.0)
-    np.testing.assert_allclose(targets.numpy(), [[0.0, 1.0, -1.0, 0.0]], atol=1e-7)
+    # a failed push weighted 1: the opposite of its angle's encoding; two harmonics give four values.
+    targets, weights = T.rotation_targets([math.pi / 2], [False], "push", 2, 1.0)
+    np.testing.assert_allclose(targets.numpy(), [[0.0, -1.0, 1.0, 0.0]], atol=1e-7)
     assert weights.tolist() == [1.0]
     # the default: failures do not train the head (weight 0).
-    assert T.rotation_targets([0.1], [False], "place", 1, True, 0.0)[1].tolist() == [0.0]
+    assert T.rotation_targets([0.1], [False], "place", 1, 0.0)[1].tolist() == [0.0]
 
 
 def test_weighted_failures_turn_the_head_from_the_policys_own_angle_toward_the_one_that_succeeds():
@@ -124,7 +121,7 @@ def test_weighted_failures_turn_the_head_from_the_policys_own_angle_toward_the_o
         num, den = np.zeros(4), 0.0
         for theta, (n, p) in tried.items():
             for success, share in ((True, p), (False, 1 - p)):
-                sign, weight = T.rotation_sign_weight(success, True, w)
+                sign, weight = T.rotation_sign_weight(success, w)
                 num += n * share * weight * sign * np.asarray(T.rotation_target(math.radians(theta), "pick", 2))
                 den += n * share * weight
         r = num / den
