@@ -31,6 +31,7 @@ RETIRED: dict[str, Any] = {
     "actor.demo_actions": 0,
     "model.dropout": 0.0,
     "learner.train_rotation_on_success_only": True,
+    "replay.group_commit": True,
 }
 
 

@@ -35,7 +35,6 @@ class ReplayConfig:
     # Durability.
     segment_max_bytes: int = 256 * (1 << 20)  # log segment rotation size
     fsync: bool = True  # False only for throw-away runs: acks then survive a process crash, not power loss
-    group_commit: bool = True  # one fsync for all inserts waiting at that moment (throughput)
     snapshot_every_s: float = 60.0  # 0 = no time-based snapshots
     snapshot_every_inserts: int = 1000  # 0 = no count-based snapshots
     keep_snapshots: int = 2  # older snapshots are deleted; the previous one is a fallback if the last is bad

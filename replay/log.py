@@ -154,11 +154,10 @@ class LogFailed(OSError):
 class SegmentLog:
     """Appends chunks of transitions to the newest segment; thread-safe; group commit."""
 
-    def __init__(self, directory: Path, segment_max_bytes: int, fsync: bool = True, group_commit: bool = True):
+    def __init__(self, directory: Path, segment_max_bytes: int, fsync: bool = True):
         self.directory = directory
         self.segment_max_bytes = segment_max_bytes
         self.fsync_enabled = fsync
-        self.group_commit = group_commit
         self._mu = threading.Lock()  # queue and tickets
         self._commit_mu = threading.Lock()  # one writer at a time
         self._pending: list[_Pending] = []
@@ -196,11 +195,7 @@ class SegmentLog:
                     raise LogFailed(f"the replay log failed ({self._failed}); restart the server")
                 if self._durable_ticket >= ticket:
                     return  # a concurrent commit covered us
-                if self.group_commit:
-                    batch, self._pending = self._pending, []
-                else:
-                    cut = next((i for i, p in enumerate(self._pending) if p.ticket > ticket), len(self._pending))
-                    batch, self._pending = self._pending[:cut], self._pending[cut:]
+                batch, self._pending = self._pending, []  # group commit: every insert waiting now
             try:
                 written = self._write_chunk(batch)
             except BaseException as exc:

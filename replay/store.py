@@ -100,7 +100,7 @@ class ReplayStore:
         try:
             self.recovered, self._losses, self._legacy_segments = recover(self.directory, accept_loss)
             self._load(self.recovered)
-            self._log = SegmentLog(self.directory, cfg.segment_max_bytes, cfg.fsync, cfg.group_commit)
+            self._log = SegmentLog(self.directory, cfg.segment_max_bytes, cfg.fsync)
         except BaseException:
             self._dir_lock.release()
             raise

@@ -176,11 +176,10 @@ def test_segments_rotate_are_standard_mcap_and_evicted_ones_are_reclaimed(tmp_pa
         assert all(80 <= it.item_id < 120 for it in batch.items)
 
 
-@pytest.mark.parametrize("group_commit", [True, False])
-def test_concurrent_inserts_are_all_durable(tmp_path, group_commit: bool) -> None:
+def test_concurrent_inserts_are_all_durable(tmp_path) -> None:
     import threading
 
-    s = ReplayStore(cfg(group_commit=group_commit), tmp_path)
+    s = ReplayStore(cfg(), tmp_path)
     acks = []
 
     def actor(a: int) -> None:
