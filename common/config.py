@@ -32,8 +32,6 @@ RETIRED: dict[str, Any] = {
     "model.dropout": 0.0,
     "learner.train_rotation_on_success_only": True,
     "replay.group_commit": True,
-    "learner.target_network": False,
-    "learner.target_sync_every_updates": 100,
 }
 
 

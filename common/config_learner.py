@@ -42,11 +42,13 @@ class LearnerConfig:
     # to 0.43-0.63 in 30 updates on those four items alone, docs/journal.md); 1 gives it the paper's weight.
     # 0 = the support loss alone.
     executed_pixel_weight: float = 1.0
+    target_network: bool = False  # bootstrap V(s_{t+1}) from a lagged copy instead of the online net
     # Clip V(s_{t+1}) into the range a return can have, [0, largest reward weight / (1 - gamma)]: rewards are
     # >= 0 and <= that weight, so a V outside it is the nets' error. Off = the paper's target. Seen without it:
     # the place net's largest Q in a batch went from 7.6 to -0.4 in nine updates, and a successful pick's
     # target R + gamma V moves with it, from ~4 to below a failed pick's 0 (docs/journal.md).
     bootstrap_clip: bool = True
+    target_sync_every_updates: int = 100  # copy online -> target every this many updates
     # Take V(s_{t+1}) from the actor's next decision (it runs the same nets on s_{t+1} to act) when its weights
     # are at most this many updates behind the learner's, instead of a forward pass here; older values are
     # recomputed (learner.trainer.actor_value_usable). 0 = always compute here.
@@ -119,6 +121,8 @@ class LearnerConfig:
                 self.max_grad_norm, "must be a non-negative number (0 = no clipping)")
         require(0 <= self.actor_value_max_age <= 1_000_000, "learner.actor_value_max_age", self.actor_value_max_age,
                 "must be 0..1000000 updates (0 = V(s_t+1) always computed by the learner)")
+        require(self.target_sync_every_updates >= 1, "learner.target_sync_every_updates",
+                self.target_sync_every_updates, "must be >= 1")
         require(0.0 <= self.rotation_loss_weight <= 100.0, "learner.rotation_loss_weight",
                 self.rotation_loss_weight, "must be in [0, 100] (0 = the rotation head is not trained)")
         require(math.isfinite(self.rotation_failure_weight) and 0.0 <= self.rotation_failure_weight <= 10.0,

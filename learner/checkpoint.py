@@ -2,7 +2,7 @@
 
 Layout of a run directory:
 
-    RUN_DIR/checkpoints/ckpt-000001000/tensors.safetensors   model/…, momentum/…, rng/torch, rng/numpy
+    RUN_DIR/checkpoints/ckpt-000001000/tensors.safetensors   model/…, target/…, momentum/…, rng/torch, rng/numpy
     RUN_DIR/checkpoints/ckpt-000001000/state.json            updates, LAE state, numpy/python RNG, configs
     RUN_DIR/checkpoints/ckpt-000001000/manifest.json         sha256 and size of the two files above
     RUN_DIR/checkpoints/LATEST                               name of the newest complete checkpoint
@@ -11,7 +11,7 @@ Layout of a run directory:
 A checkpoint is written into a temporary directory, fsync'ed, renamed into place, and only then named in
 LATEST (itself replaced atomically), so a crash at any moment leaves the previous checkpoint loadable.
 Everything the next update depends on is saved: weights and BN statistics, the SGD momentum buffers, the
-update counter, the exploration rate, and the torch / numpy / python RNG states. On a CPU
+target net, the update counter, the exploration rate, and the torch / numpy / python RNG states. On a CPU
 with the same thread count the update after a resume is bit-identical to the uninterrupted run's
 (tests/test_checkpoint.py).
 
@@ -102,8 +102,10 @@ def _configs(trainer: Trainer) -> dict[str, Any]:
 
 
 def _training_tensors(trainer: Trainer) -> dict[str, torch.Tensor]:
-    """The nets and SGD momentum buffers, as checkpoint tensors."""
+    """Online and target nets and SGD momentum buffers, as checkpoint tensors."""
     tensors = {f"model/{k}": v for k, v in state_dict_to_tensors(trainer.model).items()}
+    if trainer.target is not None:
+        tensors.update({f"target/{k}": v for k, v in state_dict_to_tensors(trainer.target).items()})
     for pname, param in trainer.model.named_parameters():
         buf = trainer.optimizer.state.get(param, {}).get("momentum_buffer")
         if buf is not None:
@@ -195,6 +197,12 @@ def _check_configs(trainer: Trainer, ckpt: VerifiedCheckpoint) -> None:
 def _restore(trainer: Trainer, tensors: Mapping[str, torch.Tensor], state: Mapping[str, Any]) -> None:
     """Put verified checkpoint contents into the trainer and the global RNGs."""
     load_tensors(trainer.model, {k[6:]: v for k, v in tensors.items() if k.startswith("model/")})
+    if trainer.target is not None:
+        target = {k[7:]: v for k, v in tensors.items() if k.startswith("target/")}
+        if target:
+            load_tensors(trainer.target, target)
+        else:  # the run had no target net: start it from the online weights
+            trainer.sync_target()
     trainer.optimizer.state.clear()
     for pname, param in trainer.model.named_parameters():
         buf = tensors.get(f"momentum/{pname}")
@@ -348,9 +356,10 @@ def read_init_weights(path: str | Path, model_cfg: ModelConfig) -> tuple[dict[st
 
 
 def start_from_weights(trainer: Trainer, tensors: Mapping[str, torch.Tensor]) -> None:
-    """Put `tensors` (validated) in the nets of a new run: update counter 0, no momentum,
+    """Put `tensors` (validated) in the online and target nets of a new run: update counter 0, no momentum,
     the exploration rate at its start."""
     load_tensors(trainer.model, tensors)
+    trainer.sync_target()
     trainer.optimizer.state.clear()
     trainer.updates = 0
     trainer.exploration = ExplorationRate(trainer.exploration_cfg)

@@ -1,6 +1,6 @@
 """A learner checkpoint's files, written whole and read back only when verified.
 
-    RUN_DIR/checkpoints/ckpt-000001000/tensors.safetensors   weights, momentum, RNG tensors
+    RUN_DIR/checkpoints/ckpt-000001000/tensors.safetensors   weights, target net, momentum, RNG tensors
     RUN_DIR/checkpoints/ckpt-000001000/state.json            updates, LAE state, RNG states, configs
     RUN_DIR/checkpoints/ckpt-000001000/manifest.json         sha256 and size of the two files above
 
@@ -167,11 +167,11 @@ def _check_state(ckpt: Path, state: Mapping[str, Any], training_state: bool) -> 
 
 def _check_tensors(ckpt: Path, tensors: Mapping[str, torch.Tensor], model_cfg: ModelConfig,
                    training_state: bool) -> None:
-    """Names, shapes, dtypes and finiteness of the nets and the momentum buffers."""
+    """Names, shapes, dtypes and finiteness of the online net, the target net and the momentum buffers."""
     with torch.device("meta"):  # shapes and dtypes only: no memory, no initialisation
         reference = RoManNet(model_cfg)
     shapes = {k: tuple(p.shape) for k, p in reference.named_parameters()}
-    groups: dict[str, dict[str, torch.Tensor]] = {"model": {}, "momentum": {}, "rng": {}}
+    groups: dict[str, dict[str, torch.Tensor]] = {"model": {}, "target": {}, "momentum": {}, "rng": {}}
     for key, value in tensors.items():
         group, _, name = key.partition("/")
         if group not in groups or not name:
@@ -179,10 +179,12 @@ def _check_tensors(ckpt: Path, tensors: Mapping[str, torch.Tensor], model_cfg: M
         groups[group][name] = value
     if not groups["model"]:
         raise CheckpointDamaged(ckpt, f"{TENSORS} holds no model/ tensors")
-    try:
-        validate_tensors(reference, groups["model"])
-    except RomannetError as err:
-        raise CheckpointDamaged(ckpt, f"model/: {err}") from None
+    for group in ("model", "target"):
+        if groups[group]:
+            try:
+                validate_tensors(reference, groups[group])
+            except RomannetError as err:
+                raise CheckpointDamaged(ckpt, f"{group}/: {err}") from None
     for name, buf in groups["momentum"].items():
         if shapes.get(name) != tuple(buf.shape):
             raise CheckpointDamaged(ckpt, f"momentum/{name} has shape {tuple(buf.shape)}, the model "

@@ -1,8 +1,8 @@
-"""The learner's training step: RoManNet, SGD, the LAE rate (no threads, no transport).
+"""The learner's training step: RoManNet, an optional target net, SGD, the LAE rate (no threads, no transport).
 
 One `train_step(batch)`:
-1. V(s_{t+1}) by an explicit no-grad forward pass over the nets allowed in s_{t+1}, only for items that
-   bootstrap (R_tp > 0 and not done: eta = 0 or the
+1. V(s_{t+1}) by an explicit no-grad forward pass over the nets allowed in s_{t+1} (the target net's when
+   enabled, else the online net's), only for items that bootstrap (R_tp > 0 and not done: eta = 0 or the
    episode's end make V irrelevant, so its forward pass is skipped).
 2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel.
 3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net; the
@@ -28,6 +28,7 @@ loss and optimiser). See docs/benchmarks.md and bench/learner.py for what each b
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 import types
@@ -148,7 +149,7 @@ def batch_items(batch: SampleBatchMsg) -> list[BatchItem]:
 
 
 class Trainer:
-    """RoManNet + SGD + exploration rate, stepping on lists of replay items."""
+    """RoManNet + optional target net + SGD + exploration rate, stepping on lists of replay items."""
 
     def __init__(self, model_cfg: ModelConfig, learner_cfg: LearnerConfig, reward_cfg: RewardConfig,
                  task_cfg: TaskConfig, seed: int | None = None,
@@ -168,6 +169,9 @@ class Trainer:
         self.model = RoManNet(model_cfg, seed=self.seed).to(self.device, memory_format=self.memory_format)
         self.model.train()
         _fp32_heads(self.model)
+        self.target: RoManNet | None = None
+        if learner_cfg.target_network:
+            self.target = copy.deepcopy(self.model).eval().requires_grad_(False)
         self.optimizer = torch.optim.SGD(self.model.parameters(), lr=learner_cfg.lr,
                                          momentum=learner_cfg.momentum, weight_decay=learner_cfg.weight_decay)
         self.exploration = ExplorationRate(self.exploration_cfg)
@@ -191,6 +195,11 @@ class Trainer:
         """The online net's weights and BN statistics as a flat CPU tensor dict (what actors load)."""
         return state_dict_to_tensors(self.model)
 
+    def sync_target(self) -> None:
+        """Copy the online net into the target net (no-op without a target net)."""
+        if self.target is not None:
+            self.target.load_state_dict(self.model.state_dict())
+
     @torch.no_grad()
     def next_state_values(self, transitions: Sequence[TransitionMsg]) -> list[float]:
         """V(s_{t+1}) per transition, 0 where it cannot matter (done, or R_tp <= 0 so eta = 0)."""
@@ -208,8 +217,9 @@ class Trainer:
         self.values_computed += len(need)
         if not need:
             return values
-        was_training = self.model.training
-        self.model.eval()  # the running statistics: the same function the actors act on
+        net_model = self.target if self.target is not None else self.model
+        was_training = net_model.training
+        net_model.eval()  # the running statistics: the same function the actors act on
         try:
             by_net: dict[str, list[int]] = defaultdict(list)
             for i in need:
@@ -219,7 +229,7 @@ class Trainer:
             for p, idx in by_net.items():
                 x = self._inputs([transitions[i].color_after for i in idx], [transitions[i].depth_after for i in idx])
                 with self._autocast():
-                    q, _ = self.model.nets[p](x)
+                    q, _ = net_model.nets[p](x)
                 if self.exploration_cfg.action_mask:  # V over the pixels the actors may choose
                     best = masked_max(q.float(), np.stack([transitions[i].depth_after for i in idx]), p,
                                       self.exploration_cfg)
@@ -233,7 +243,7 @@ class Trainer:
                 if bounds is not None:
                     values[i] = clip_value(values[i], bounds)
         finally:
-            self.model.train(was_training)
+            net_model.train(was_training)
         return values
 
     # ------------------------------------------------------------------------------------------ the step
@@ -279,6 +289,8 @@ class Trainer:
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm)
         self.optimizer.step()
         self.updates += 1
+        if self.target is not None and self.updates % cfg.target_sync_every_updates == 0:
+            self.sync_target()
         exploration_loss = float(np.mean(pixel_losses))
         rate = self.exploration.update(exploration_loss)
         return StepStats(loss=float(loss.detach()), loss_by_primitive=loss_by_primitive, td_errors=tuple(td_errors),

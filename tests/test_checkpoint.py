@@ -46,7 +46,7 @@ def _assert_same_state(a, b):
 
 def test_save_load_then_step_is_bit_identical(tmp_path):
     batches = _batches(5)
-    a = H.trainer(seed=1)
+    a = H.trainer(seed=1, target_network=True, target_sync_every_updates=2)
     for b in batches[:3]:
         a.train_step(b)
     path = save_checkpoint(a, tmp_path)
@@ -58,12 +58,14 @@ def test_save_load_then_step_is_bit_identical(tmp_path):
         a.train_step(b)
     expected_rng = (torch.rand(3), np.random.rand(), random.random())
 
-    c = H.trainer(seed=2)  # other init: load overrides it
+    c = H.trainer(seed=2, target_network=True, target_sync_every_updates=2)  # other init: load overrides it
     load_checkpoint(c, tmp_path)
     assert c.updates == 3
     for b in batches[3:]:
         c.train_step(b)
     _assert_same_state(a, c)
+    for k, v in a.target.state_dict().items():
+        assert torch.equal(v, c.target.state_dict()[k]), k
     # The RNG streams continue from the checkpoint (the reseeding above came after the save).
     torch.manual_seed(123)
     np.random.seed(5)
@@ -106,16 +108,16 @@ def test_start_from_weights_is_a_new_run_on_those_weights():
     source = H.trainer(seed=1)
     for b in _batches(2):
         source.train_step(b)
-    used = H.trainer(seed=2)  # momentum, an update count and a moved exploration rate
+    used = H.trainer(seed=2, target_network=True)  # momentum, an update count and a moved exploration rate
     used.train_step(_batches(3)[2])
     start_from_weights(used, source.state_tensors())
-    fresh = H.trainer(seed=3)
+    fresh = H.trainer(seed=3, target_network=True)
     start_from_weights(fresh, source.state_tensors())
     for t in (used, fresh):
         assert t.updates == 0 and not t.optimizer.state
         assert t.exploration.state_dict() == H.trainer().exploration.state_dict()
         for k, v in source.state_tensors().items():
-            assert torch.equal(t.model.state_dict()[k], v), k
+            assert torch.equal(t.model.state_dict()[k], v) and torch.equal(t.target.state_dict()[k], v), k
     batch = _batches(4)[3]
     used.train_step(batch)
     fresh.train_step(batch)

@@ -315,7 +315,7 @@ class _EmptyReplay:
 
 def test_learner_init_from_a_package_publishes_its_weights_as_version_0(run, tmp_path):
     out = pack(run[0], _eval_dir(tmp_path / "eval", 3, 2), tmp_path / "models" / "clutter")
-    cfg = load_config(None, SETS)
+    cfg = load_config(None, [*SETS, "learner.target_network=true"])
     init, _ = read_init_weights(out, cfg.model)
     expected = _rounded(run[1].state_tensors())
     stop, trainers, result = threading.Event(), [], {}
@@ -345,6 +345,7 @@ def test_learner_init_from_a_package_publishes_its_weights_as_version_0(run, tmp
     assert all(torch.equal(weights[k], expected[k]) for k in expected)
     trainer = trainers[0]
     assert trainer.updates == 0 and not trainer.optimizer.state
+    assert all(torch.equal(v, expected[k]) for k, v in state_dict_to_tensors(trainer.target).items())
     assert result["summary"]["updates"] == 0
     state = json.loads((tmp_path / "ft" / "checkpoints" / "ckpt-000000000" / "state.json").read_text())
     assert state["updates"] == 0

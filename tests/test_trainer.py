@@ -1,4 +1,4 @@
-"""Trainer: gradients reach only the executed nets, targets, IS weights, LAE, published weights."""
+"""Trainer: gradients reach only the executed nets, targets, IS weights, LAE, target net, published weights."""
 
 from __future__ import annotations
 
@@ -68,6 +68,22 @@ def test_bootstrap_only_on_success_and_from_the_allowed_nets():
     stats = t.train_step([(ok, 1.0, 0), (fail, 1.0, 1)])
     assert stats.targets[0] == pytest.approx(0.5 + 0.5 * expected, rel=1e-5)
     assert stats.targets[1] == 0.0
+
+
+def test_target_network_is_used_and_synced():
+    t = H.trainer(target_network=True, target_sync_every_updates=2, bootstrap_clip=False)
+    with torch.no_grad():
+        for p in t.target.parameters():
+            p.add_(0.05)
+    ok = H.transition(primitive="pick", reward=1.0, done=False)
+    with torch.no_grad():
+        x = preprocess_batch(ok.color_after[None], ok.depth_after[None])
+        expected = max(float(t.target.nets[p](x)[0].max()) for p in ("push", "pick"))
+    assert t.next_state_values([ok])[0] == pytest.approx(expected, rel=1e-5)
+    t.train_step([(ok, 1.0, 0)])
+    t.train_step([(ok, 1.0, 0)])
+    for k, v in t.model.state_dict().items():
+        assert torch.equal(v, t.target.state_dict()[k]), k
 
 
 def test_is_weight_scales_the_loss():
