@@ -219,8 +219,8 @@ class ExplorationConfig:
     mask_push_reach_px: int = 25  # a push starting this close to something can meet it (5 cm at 2 mm)
     # Pixels within this of an action of the same primitive that failed since the episode's last success are
     # not chosen again (common/failure_memory.py): a greedy policy otherwise repeats a failed pick on the scene
-    # it did not change until the episode ends. 0: off.
-    failure_memory_px: int = 0
+    # it did not change until the episode ends; 10 px beat 20 and 0 on 3 checkpoints (docs/results.md). 0: off.
+    failure_memory_px: int = 10
     epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
     epsilon_decay: float = 0.9998
     epsilon_min: float = 0.1
