@@ -1,7 +1,7 @@
 """Not repeating a failed action on a scene it did not change: the greedy policy's loop breaker.
 
     memory = FailureMemory(radius_px=10)       # one per episode; exploration.failure_memory_px
-    action = decide(..., avoid=memory.masks(nets, depth_hm.shape))
+    action = decide(..., avoid=memory)         # decide takes memory.masks(its nets, the heightmap shape)
     memory.record(action, success)             # a success clears it; memory.reset() at a new episode
 
 A greedy policy that is not learning sees nearly the same heightmap after a pick that moved nothing, so it
