@@ -41,7 +41,7 @@ from typing import Any
 import safetensors.torch
 
 from romannet.common.config import load_config
-from romannet.common.configbase import to_dict
+from romannet.common.configbase import dumps_toml, to_dict
 from romannet.common.errors import RomannetError
 from romannet.learner.checkpoint import (
     PACKAGE_CONFIG,
@@ -171,7 +171,8 @@ def package_files(source: Path, eval_dir: Path, out: Path, now: dt.datetime | No
         "main_metric": {"name": MAIN_METRIC, "value": main_metric(report), **eval_settings(report)},
         "date": (now or dt.datetime.now(dt.timezone.utc)).isoformat(timespec="seconds"),
     }
-    files = {PACKAGE_WEIGHTS: weights, PACKAGE_CONFIG: config_path.read_bytes(), "report.json": report_json,
+    # The resolved config, not the run's file: a run from an older version may still name removed options.
+    files = {PACKAGE_WEIGHTS: weights, PACKAGE_CONFIG: dumps_toml(cfg).encode(), "report.json": report_json,
              "report.md": report_md, PACKAGE_META: (json.dumps(meta, indent=1) + "\n").encode()}
     total = sum(len(b) for b in files.values())
     if total > MAX_PACKAGE_BYTES:

@@ -135,6 +135,20 @@ def test_pack_writes_a_complete_small_package(run, tmp_path):
     assert sum(p.stat().st_size for p in out.iterdir()) <= MAX_PACKAGE_BYTES
 
 
+def test_pack_writes_the_resolved_config_without_removed_options(run, tmp_path):
+    """A run trained by an older version names options since removed (at the values that kept them off): the
+    package's config is today's resolved config, so it loads without them and says the same thing."""
+    run_dir, _ = run
+    cfg_path = run_dir / "config.toml"
+    text = cfg_path.read_text()
+    cfg_path.write_text(text.replace("[model]\n", "[model]\ndropout = 0.0\n", 1))
+    assert "dropout" in cfg_path.read_text()
+    out = pack(run_dir, _eval_dir(tmp_path / "eval", 3, 2), tmp_path / "models" / "clutter")
+    packed = (out / "config.toml").read_text()
+    assert "dropout" not in packed
+    assert load_config(out / "config.toml") == load_config(cfg_path)
+
+
 def test_the_default_model_fits_in_a_package():
     """3 nets x 1.9 M parameters: 11.5 MB in bf16, under the 15 MB a package may take."""
     packed = to_package_dtypes(state_dict_to_tensors(RoManNet(ModelConfig())))
