@@ -116,7 +116,10 @@ class EpisodeRecorder:
         self.steps = 0
         self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close(), which callers run in finally
         self._closed = False
-        self._writer = McapWriter(self._file, chunk_size=chunk_bytes, compression=_COMPRESSION[compression])
+        # The DataEnd CRC covers the metadata records too: a flipped bit in a value that still parses
+        # (a config number, an id) is otherwise invisible to readers and `mcap inspect --verify`.
+        self._writer = McapWriter(self._file, chunk_size=chunk_bytes, compression=_COMPRESSION[compression],
+                                  enable_data_crcs=True)
         self._writer.start(profile="", library="romannet actor")
         self._channels: dict[str, int] = {}
         self._schema_ids: dict[str, int] = {}

@@ -15,7 +15,8 @@ reading stopped. Damage in the middle costs only the damaged part, and `health.d
   whole record, found through the summary's chunk and metadata indexes when the summary is intact, else
   by scanning for the next chunk whose lengths add up and whose CRC matches;
 - a metadata record that does not parse is skipped; a changed byte inside a metadata value that still
-  parses is seen only through the CRC over the whole data section, which the writer may leave out (0);
+  parses is seen only through the CRC over the whole data section (the actor and `mcap rescore` keep it;
+  other writers may leave it out, 0);
 - messages of channels whose declaration was in a skipped chunk are read through the copies of every
   channel in the summary; without a summary they cannot be read and are counted;
 - a summary whose CRC does not match, or a damaged footer, is named; the data is read all the same.

@@ -144,8 +144,27 @@ def test_random_single_byte_damage_never_costs_more_than_one_step(recorded, tmp_
             continue
         assert _in_order(got, full.transitions)
         lost.append(STEPS - len(got))
-        assert len(got) == STEPS or health.damaged
+        # Every changed bit is seen (chunk, summary and data-section CRCs, record framing): --verify fails.
+        assert health.state != "complete", (i, health)
     assert max(lost) <= 1 and len(lost) >= 55
+
+
+def test_a_changed_metadata_value_in_an_actors_file_is_found(recorded, tmp_path: Path, capsys) -> None:
+    """The actor's recorder keeps the data-section CRC: a flipped bit in a metadata value that still parses
+    (a config number, an id) is damage, named in one line, and `inspect --verify` exits 1 on it."""
+    full, _ = recorded
+    data = full.path.read_bytes()
+    for which in (0, 1):  # "romannet" (ids, seed), "config" (the resolved TOML)
+        meta = [r for r in dmg.records(data) if r.opcode == 0x0C][which]
+        bad = bytearray(data)
+        bad[meta.end - 2] ^= 0x01  # inside the last value, still valid UTF-8: the record parses
+        path = dmg.write(tmp_path / f"meta{which}.mcap", bytes(bad))
+        got, health = _read(path)
+        assert got == full.transitions  # nothing else is lost
+        assert health.state == "damaged" and "the data section's CRC does not match" in health.damage[0]
+        assert main(["mcap", "inspect", str(path), "--verify"]) == 1
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"{path}: damaged: the data section's CRC" in err
 
 
 def test_not_mcap_is_one_typed_error(tmp_path: Path) -> None:

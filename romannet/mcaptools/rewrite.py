@@ -28,7 +28,9 @@ class EpisodeWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._tmp = self.path.with_name(self.path.name + ".tmp")
         self._file = open(self._tmp, "wb")  # noqa: SIM115 - closed in __exit__
-        self._writer = McapWriter(self._file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+        # With the data-section CRC, as the actor writes: a changed metadata value is then found.
+        self._writer = McapWriter(self._file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD,
+                                  enable_data_crcs=True)
         self._writer.start(profile="", library=library)
         self._schemas: dict[tuple[str, str, bytes], int] = {}
         self._channels: dict[str, int] = {}
