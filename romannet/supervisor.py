@@ -160,6 +160,7 @@ class Supervisor:
         self.stopping = False
         self.gave_up: list[str] = []  # children that crashed too often
         self.crashes = 0  # restarts done, for the summary
+        self.ends: list[tuple[str, str]] = []  # (child, how) of every unclean end, restarted or not, in order
 
     # ------------------------------------------------------------------------------------ starting
     def start(self, name: str) -> None:
@@ -204,9 +205,15 @@ class Supervisor:
                             self.policy.window_s)
                 self.start(name)
 
-    def _exited(self, name: str, child: Child, code: int, now: float) -> None:
+    def _ended(self, child: Child, code: int, asked: bool) -> None:
+        """Record how a run ended; an unclean end stays in the history even after a clean restart."""
         child.last_exit = code
-        child.unclean = unclean_end(code, child.asked_to_stop, child.spec.restart)
+        child.unclean = unclean_end(code, asked, child.spec.restart)
+        if child.unclean is not None:
+            self.ends.append((child.spec.name, child.unclean))
+
+    def _exited(self, name: str, child: Child, code: int, now: float) -> None:
+        self._ended(child, code, child.asked_to_stop)
         if self.stopping:
             # Not restarted any more, but still reported: a child that dies while another rank is being
             # stopped is found here (or by stop_rank's reaping), not lost because no one polled it.
@@ -244,7 +251,7 @@ class Supervisor:
 
     def unclean(self) -> dict[str, str]:
         """Each child whose last run ended unclean, with how (see unclean_end); a crash that was followed
-        by a clean restart is not here (self.crashes counts it)."""
+        by a clean restart is not here (self.ends lists it, self.crashes counts it)."""
         return {name: c.unclean for name, c in self.children.items() if c.unclean is not None}
 
     def reap(self) -> None:
@@ -316,8 +323,7 @@ class Supervisor:
                     code = child.proc.wait()
                     pending.discard(name)
                 if code is not None:
-                    child.last_exit = code
-                    child.unclean = unclean_end(code, True, child.spec.restart)
+                    self._ended(child, code, True)
                     child.state = "stopped"
             if pending:
                 time.sleep(0.05)
@@ -328,6 +334,5 @@ class Supervisor:
         self.reap()
         for name, child in self.children.items():
             if self.signal(name, signal.SIGKILL) and child.proc is not None:
-                child.last_exit = child.proc.wait()
-                child.unclean = unclean_end(child.last_exit, True, child.spec.restart)
+                self._ended(child, child.proc.wait(), True)
                 child.state = "stopped"

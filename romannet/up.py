@@ -33,7 +33,9 @@ at once. Children sit in their own process groups and get SIGTERM if the launche
 (romannet/supervisor.py), so none outlives it. Exit code 0 when every child stopped cleanly (exit 0),
 1 if the supervisor gave up on a crash-looping child or a child's last run did not end cleanly (a crash,
 also one while another group was being stopped; a service that exited before it was asked; SIGKILL after
-the timeout): summary.json's "unclean" names each such child and how it ended. 2 for bad arguments.
+the timeout): summary.json's "unclean" names each such child and how it ended; its "unclean_ends" lists
+every unclean end in order, also a crash a restart recovered from (which alone leaves the exit code 0).
+2 for bad arguments.
 """
 
 from __future__ import annotations
@@ -451,6 +453,8 @@ def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, 
         "restarts": sup.crashes, "gave_up": sup.gave_up,
         "exit_codes": {n: c.last_exit for n, c in sup.children.items()},
         "unclean": sup.unclean(),  # child -> how its last run ended, for each that did not stop cleanly
+        # Every unclean end in order, also those a restart recovered from (the exit code stays 0 for them).
+        "unclean_ends": [{"child": name, "how": how} for name, how in sup.ends],
         "actors": {aid: {k: s.get(k) for k in ("actions", "episodes", "completed_episodes", "picks",
                                                 "successful_picks", "weights_version", "explore_rate",
                                                 "sent", "acked", "spool_items", "last_done_reason")}

@@ -264,6 +264,7 @@ def test_replay_outages_mid_run_lose_and_duplicate_nothing(tmp_path: Path, ups: 
     assert summary["outcome"] == "stopped_by_signal", summary
     assert summary["restarts"] == 1, summary
     assert "replay crashed (killed by SIGKILL); restarting" in up.output()
+    assert summary["unclean_ends"] == [{"child": "replay", "how": "killed by SIGKILL before it was asked to stop"}]
     keys, _ = _replay_items(up.run_dir)
     assert len(keys) == len(set(keys)), "duplicate keys in the replay log"
     per_actor = Counter(k[0] for k in keys)
@@ -340,6 +341,8 @@ def test_killed_actor_is_restarted_with_the_rest_of_its_share(tmp_path: Path, up
     summary = json.loads((up.run_dir / "summary.json").read_text())
     assert summary["outcome"] == "max_actions_reached" and summary["restarts"] == 1, summary
     assert "actor-1 crashed (killed by SIGKILL); restarting" in up.output()
+    assert summary["unclean"] == {} and summary["unclean_ends"] == [
+        {"child": "actor-1", "how": "killed by SIGKILL before it was asked to stop"}], summary
     # The launcher adds up both processes of actor-1; together they did its share (20 of 40).
     assert summary["actions"] == 40 and summary["actors"]["actor-1"]["actions"] == 20, summary
     keys, _ = _replay_items(up.run_dir)

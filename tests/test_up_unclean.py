@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from romannet.supervisor import ChildSpec, Supervisor, unclean_end
+from romannet.supervisor import ChildSpec, RestartPolicy, Supervisor, unclean_end
 
 PY = sys.executable
 
@@ -79,6 +79,7 @@ def test_child_killed_while_the_actors_stop_is_reported(tmp_path: Path) -> None:
         sup.kill_all()
     assert codes == {"replay": -signal.SIGKILL, "learner": 0, "actor-0": 0}
     assert sup.unclean() == {"replay": "killed by SIGKILL before it was asked to stop"}
+    assert sup.ends == [("replay", "killed by SIGKILL before it was asked to stop")]
 
 
 @pytest.mark.timeout(60)
@@ -108,7 +109,37 @@ def test_clean_stop_reports_nothing_and_sigkill_after_timeout_is_unclean(tmp_pat
     finally:
         sup.kill_all()
     assert codes == {"replay": 0, "stubborn": -signal.SIGKILL}
-    assert sup.unclean() == {"stubborn": "killed by SIGKILL"}
+    assert sup.unclean() == {"stubborn": "killed by SIGKILL"} and sup.ends == [("stubborn", "killed by SIGKILL")]
+
+
+@pytest.mark.timeout(60)
+def test_a_crash_that_a_restart_recovered_from_stays_in_the_history(tmp_path: Path) -> None:
+    # The first run exits 3 on its own; the restart runs until it is stopped and stops cleanly.
+    code = textwrap.dedent(f"""
+        import os, signal, sys, time
+        marker = {str(tmp_path / 'crashed')!r}
+        if not os.path.exists(marker):
+            open(marker, "w").close()
+            sys.exit(3)
+        signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+        open({str(tmp_path / 'flaky.pid')!r}, "w").write(str(os.getpid()))
+        time.sleep(60)
+    """)
+    sup = Supervisor([ChildSpec("flaky", [PY, "-c", code], stop_timeout_s=10)],
+                     RestartPolicy(initial_backoff_s=0.0))
+    sup.start_all()
+    try:
+        deadline = time.monotonic() + 30
+        while not (tmp_path / "flaky.pid").exists():
+            assert time.monotonic() < deadline, "the restart did not come up"
+            sup.poll()
+            time.sleep(0.02)
+        codes = sup.stop_all()
+    finally:
+        sup.kill_all()
+    assert codes == {"flaky": 0} and sup.crashes == 1
+    assert sup.unclean() == {}  # its last run ended cleanly: the launcher's exit code stays 0
+    assert sup.ends == [("flaky", "exit code 3 before it was asked to stop")]  # summary.json's unclean_ends
 
 
 def test_unclean_end_rules() -> None:
