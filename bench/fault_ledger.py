@@ -69,6 +69,16 @@ def next_episode(run_dir: Path, actor_id: str) -> int:
     return int(json.loads((run_dir / "actors" / actor_id / "state.json").read_text())["next_episode"])
 
 
+def logged_keys(config_path: Path, replay_dir: Path) -> list[Key]:
+    """The (actor, episode, step) key of every item in a stopped replay server's durable log, in log order
+    (a key twice is a duplicate)."""
+    from romannet.common.config import load_config
+    from romannet.replay.store import ReplayStore
+
+    with ReplayStore(load_config(config_path).replay, replay_dir) as store:
+        return [tuple(meta.key) for _, _, meta in store.recovered.items]  # type: ignore[misc]
+
+
 def _episode_index(episode_id: str) -> int:
     match = re.fullmatch(r"ep(\d+)", episode_id or "")
     return int(match.group(1)) if match else -1
@@ -100,12 +110,7 @@ class Ledger:
         self._procs[actor_id].append(_Process(dict(status), killed=False))
 
     def reconcile(self, config_path: Path) -> dict[str, Any]:
-        from romannet.common.config import load_config
-        from romannet.replay.store import ReplayStore
-
-        cfg = load_config(config_path)
-        with ReplayStore(cfg.replay, self.run_dir / "replay") as store:
-            logged: list[Key] = [tuple(meta.key) for _, _, meta in store.recovered.items]  # type: ignore[misc]
+        logged = logged_keys(config_path, self.run_dir / "replay")
         stored = set(logged)
         problems: list[str] = []
         per_actor: dict[str, dict[str, Any]] = {}

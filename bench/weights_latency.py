@@ -114,18 +114,21 @@ def _wait_all(paths: list[Path], version: int, timeout_s: float) -> list[dict[in
         time.sleep(0.005)
 
 
-def bytes_out(pid: int) -> int | None:
-    """Bytes acknowledged by the peers of pid's established TCP sockets (None without a working `ss`)."""
+def bytes_out(pid: int | None, netns: str | None = None) -> int | None:
+    """Bytes acknowledged by the peers of pid's established TCP sockets (None without a working `ss`).
+    netns: count in that network namespace (`ip netns exec`); pid None there counts every socket of it,
+    which is one process's egress when the namespace is a host of its own (bench/netns.py)."""
+    argv = ["ss", "-tinpH", "state", "established"]
     try:
-        text = subprocess.run(["ss", "-tinpH", "state", "established"], capture_output=True, text=True,
-                              timeout=10, check=True).stdout
+        text = subprocess.run(["ip", "netns", "exec", netns, *argv] if netns else argv, capture_output=True,
+                              text=True, timeout=10, check=True).stdout
     except (OSError, subprocess.SubprocessError):
         return None
     total, mine = 0, False
     for line in text.splitlines():  # a socket's line (with its process) then its indented info line
-        owner = _SOCKET.search(line)
-        if owner:
-            mine = int(owner.group(1)) == pid
+        if not line[:1].isspace():
+            owner = _SOCKET.search(line)
+            mine = pid is None or (owner is not None and int(owner.group(1)) == pid)
         elif mine and (acked := _ACKED.search(line)):
             total += int(acked.group(1))
             mine = False
@@ -139,16 +142,20 @@ def _no_shm(config: Any) -> Any:
     return config
 
 
-def _start_router(port: int, folder: Path) -> subprocess.Popen:
-    """A `romannet router` process on 127.0.0.1:port (multicast scouting and shared memory off), once it
-    accepts TCP."""
+def router_argv(folder: Path, listen: str) -> list[str]:
+    """`romannet router` on endpoint `listen`, multicast scouting and shared memory off (its config goes in
+    folder)."""
     config = folder / "router.json5"
     config.write_text('{mode: "router", scouting: {multicast: {enabled: false}}, '
                       'transport: {shared_memory: {enabled: false}}}')
+    return [sys.executable, "-m", "romannet.cli", "router", "--zenoh-config", str(config), "--listen", listen]
+
+
+def start_router(port: int, folder: Path) -> subprocess.Popen:
+    """A `romannet router` process on 127.0.0.1:port, once it accepts TCP."""
     log_path = folder / "router.log"
     with log_path.open("ab") as log_file:
-        proc = subprocess.Popen([sys.executable, "-m", "romannet.cli", "router", "--zenoh-config", str(config),
-                                 "--listen", f"tcp/127.0.0.1:{port}"], stdin=subprocess.DEVNULL,
+        proc = subprocess.Popen(router_argv(folder, f"tcp/127.0.0.1:{port}"), stdin=subprocess.DEVNULL,
                                 stdout=log_file, stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
@@ -162,7 +169,7 @@ def _start_router(port: int, folder: Path) -> subprocess.Popen:
     raise TimeoutError("the router did not listen within 60 s")
 
 
-def _stop(proc: subprocess.Popen, signal_first: bool = False) -> None:
+def stop_process(proc: subprocess.Popen, signal_first: bool = False) -> None:
     if signal_first and proc.poll() is None:
         proc.terminate()
     try:
@@ -197,7 +204,7 @@ def measure_weights_latency(actors: int, repeats: int = 5, channels: int = 32, b
         stop = Path(tmp) / "stop"
         paths = [Path(tmp) / f"actor-{i}.txt" for i in range(actors)]
         procs: list[subprocess.Popen] = []
-        router = _start_router(port, Path(tmp)) if topology == "router" else None
+        router = start_router(port, Path(tmp)) if topology == "router" else None
         config = _no_shm(make_config(listen=[] if router else [endpoint], connect=[endpoint] if router else []))
         if router:
             config.insert_json5("mode", '"client"')
@@ -223,12 +230,12 @@ def measure_weights_latency(actors: int, repeats: int = 5, channels: int = 32, b
                 finally:
                     stop.touch()
                     for p in procs:
-                        _stop(p)
+                        stop_process(p)
                     token.undeclare()
                     publisher.close()
         finally:
             if router is not None:
-                _stop(router, signal_first=True)
+                stop_process(router, signal_first=True)
     last = results[modes[-1]]
     fp32_bytes = sum(t.numel() * 4 if t.is_floating_point() else t.numel() * t.element_size()
                      for t in tensors.values())

@@ -15,6 +15,18 @@ def _repeats(args: argparse.Namespace) -> dict:
     return {} if args.repeats is None else {"repeats": args.repeats}
 
 
+def _numbers(text: str, option: str, kind: type, count: int | None = None) -> list:
+    """Comma-separated numbers of an option; ValueError (one line at the CLI) naming the option."""
+    try:
+        values = [kind(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        values = []
+    if not values or (count is not None and len(values) != count):
+        raise ValueError(f"{option} {text!r}: expected {count or 'one or more'} comma-separated "
+                         f"{kind.__name__} value(s), e.g. {'1,2' if count == 2 else '8,32,64'}")
+    return values
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "inference":
         from romannet.bench.inference import run_inference_benchmark
@@ -57,6 +69,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
         low, high = (float(x) for x in args.kill_every.split(","))
         result = run_chaos(ChaosPlan(duration_s=args.duration, kill_every_s=(low, high), flips=args.flips,
                                      seed=args.seed))
+    elif args.what == "fleet":
+        from romannet.bench.fleet import FleetPlan, run_fleet_benchmark
+
+        low, high = _numbers(args.period, "--period", float, 2)
+        plan = FleetPlan(sizes=tuple(_numbers(args.sizes, "--sizes", int)), duration_s=args.duration,
+                         period_s=(low, high), topology=args.topology, settings=tuple(args.set), seed=args.seed)
+        result = run_fleet_benchmark(plan)
     elif args.what == "faults":
         from romannet.bench.faults import run_fault_scenario_checked
 
@@ -116,6 +135,21 @@ BENCHMARKS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
               "the first) and every process stopped cleanly. Not a test: run it niced on a shared machine.",
               "romannet bench chaos --json --duration 600 --kill-every 30,90 --flips 8",
               ("seed", "duration", "kill_every", "flips")),
+    "fleet": ("weights fan-out, learner egress, inserts and updates/s with 8, 32, 64 light actors",
+              "One learner, one replay server and N light actors (no physics, no model: the actor's weights "
+              "source, spool and sender, one synthetic transition every 1-2 s) through a `romannet router`, "
+              "real processes, each in a network namespace of its own when run as root (else on loopback), "
+              "a fresh fleet per size of --sizes, after a 1-actor run. Per size, over --duration seconds once "
+              "every actor holds weights: weights from the learner's publish call to every actor (median, "
+              "p99), the learner's bytes out per version (and in copies of the weights), inserts/s and insert "
+              "p50/p99 at the actors, the learner's sample p50/p99 and updates/s (and its ratio to the 1-actor "
+              "run), the actors' CPU and memory, and the ledger: produced, acknowledged, stored, lost, "
+              "duplicated. --set takes config overrides (e.g. learner.weights_wire_dtype=\"fp32\"). About "
+              "(--duration + 1 min) per size; 8, 32, 64 at 180 s take ~20-25 min on an idle machine. Exit 1 if a "
+              "transition is lost or duplicated, an actor never got the weights or a process did not stop "
+              "cleanly. Not a test: run it on an idle machine.",
+              "sudo romannet bench fleet --json --sizes 8,32,64 --duration 180",
+              ("seed", "sizes", "duration", "period", "topology", "set")),
     "faults": ("a secure multi-host fleet through kill -9, a cut link and an intruder (root)",
                "A secure fleet on five Linux network-namespace hosts (a router; the replay server and the "
                "learner; two actors; an operator), with the configs `romannet deploy certs` writes: mutual TLS, "
@@ -141,7 +175,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
         # cmd_bench reads every field; a benchmark without the option gets its default.
         q.set_defaults(seed=0, repeats=None, inserts=2000, actions=10, robots="arm,gripper", hands="panda,rg2",
                        cube_sizes="0.05,0.04", batch_sizes="1,4,8", device="cpu", messages=2000,
-                       big_mb="100,250,500,1000", duration=600.0, kill_every="30,90", flips=8)
+                       big_mb="100,250,500,1000", duration=600.0, kill_every="30,90", flips=8,
+                       sizes="8,32,64", period="1,2", topology="auto", set=[])
         if "seed" in options:
             q.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
         if "repeats" in options:
@@ -167,8 +202,24 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
         if "big_mb" in options:
             q.add_argument("--big-mb", default="100,250,500,1000",
                            help="comma-separated sizes (MB) of the messages far over every limit")
-        if "duration" in options:
+        if "duration" in options and name == "fleet":
+            q.add_argument("--duration", type=float, default=180.0, help="measured seconds per fleet size, "
+                           "once every actor holds weights (default 180)")
+        elif "duration" in options:
             q.add_argument("--duration", type=float, default=600.0, help="seconds of chaos once the fleet is up")
+        if "sizes" in options:
+            q.add_argument("--sizes", default="8,32,64", help="comma-separated numbers of light actors "
+                           "(default 8,32,64; a 1-actor run comes first)")
+        if "period" in options:
+            q.add_argument("--period", default="1,2", metavar="LOW,HIGH",
+                           help="seconds between an actor's transitions, uniform in [LOW, HIGH] (default 1,2)")
+        if "topology" in options:
+            q.add_argument("--topology", choices=("auto", "netns", "loopback"), default="auto",
+                           help="netns: a network namespace per process (root); loopback: all on 127.0.0.1; "
+                           "auto: netns where possible (default)")
+        if "set" in options:
+            q.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                           help="config override for the whole fleet (repeatable), e.g. model.channels=16")
         if "kill_every" in options:
             q.add_argument("--kill-every", default="30,90", metavar="LOW,HIGH",
                            help="seconds between kills, drawn uniformly from [LOW, HIGH]")
