@@ -82,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     acfg = resolve_actor_config(cfg, args)
     run_dir = Path(args.run_dir)
     paths = ActorPaths.of(run_dir, acfg)
+    paths.root.mkdir(parents=True, exist_ok=True)  # a file in the way is named now, not as an unreadable state
     read_next_episode(paths.state, paths.episodes)  # a damaged state.json: one line now, before any start-up
     write_toml(cfg, paths.root / "config.toml")  # what this actor ran with (also in every MCAP file)
     zenoh_config = make_config(args.zenoh_config, listen=args.listen or None, connect=args.connect or None)

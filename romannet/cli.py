@@ -428,6 +428,21 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:
         sys.stderr.write(f"romannet {args.verb}: error: {err}\n")
         return 2
+    except OSError as err:
+        if err.filename is None:
+            raise
+        # A path the command cannot use (a file where a directory belongs, no permission, a full disk):
+        # one line naming it, as for any other bad input.
+        sys.stderr.write(f"romannet {args.verb}: error: {os_error_line(err)}\n")
+        return 2
+
+
+def os_error_line(err: OSError) -> str:
+    """'PATH: what is wrong' for an OSError that names a path."""
+    hint = ""
+    if isinstance(err, FileExistsError | NotADirectoryError):
+        hint = " (a file stands where a directory is needed)"
+    return f"{err.filename}: {err.strerror or err}{hint}"
 
 
 if __name__ == "__main__":

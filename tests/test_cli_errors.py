@@ -56,6 +56,31 @@ def test_config_with_a_bad_byte_inside_a_string(tmp_path: Path) -> None:
     one_line_error(romannet("info", "--config", str(path)), str(path), "offset 17")
 
 
+# ---------------------------------------------------------------------------------------- directories
+def test_a_file_where_a_directory_belongs(tmp_path: Path) -> None:
+    path = tmp_path / "notes.txt"
+    path.write_text("a file, not a run")
+    port = f"tcp/127.0.0.1:{_free_port()}"
+    for argv, named in ((["replay", "--dir", str(path), "--listen", port], path),
+                        (["learner", "--run-dir", str(path), "--connect", port, "--max-updates", "1"], path),
+                        (["actor", "--run-dir", str(path), "--actor-id", "a0", "--connect", port], path / "actors"),
+                        (["up", "--runs-dir", str(path), "--name", "r", "--actors", "1"], path / "r")):
+        one_line_error(romannet(*argv), str(named), "a file stands where a directory is needed")
+    assert path.read_text() == "a file, not a run"
+
+
+def test_a_replay_directory_whose_lock_cannot_be_opened(tmp_path: Path) -> None:
+    (tmp_path / "replay" / "LOCK").mkdir(parents=True)
+    one_line_error(romannet("replay", "--dir", str(tmp_path / "replay"), "--listen", f"tcp/127.0.0.1:{_free_port()}"),
+                   str(tmp_path / "replay" / "LOCK"), "Is a directory")
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
 # ---------------------------------------------------------------------------------------- actor state
 def _actor_dirs(tmp_path: Path) -> tuple[Path, Path]:
     state = tmp_path / "run" / "actors" / "actor-0" / "state.json"
