@@ -37,7 +37,8 @@ from romannet.common.weights_client import ZenohWeightsSource
 from romannet.common.zenoh_limits import FLEET_MAX_MESSAGE_BYTES, limit_messages
 from romannet.common.zenoh_session import make_config, open_session
 
-from .service import ActorPaths, read_next_episode, run_actor
+from .episode_state import read_next_episode
+from .service import ActorPaths, run_actor
 
 log = logging.getLogger(__name__)
 

@@ -73,6 +73,7 @@ def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
             raise RomannetError("--resume uses the run's saved config.toml; change it with --set, not --config")
         _check_not_running(run_dir)
         _check_replay_free(run_dir)
+        _check_actor_states(run_dir, args.actors)
         _warn_left_spools(run_dir, args.actors)
         before = load_config(saved)
         cfg = load_config(saved, overrides)
@@ -128,6 +129,15 @@ def _check_replay_free(run_dir: Path) -> None:
     """Refuse a run whose replay directory a replay server holds (started by hand, or left by a launcher
     that died): the fleet's own replay server would stop at its lock and crash-loop."""
     check_not_locked(run_dir / "replay", "replay directory")
+
+
+def _check_actor_states(run_dir: Path, actors: int) -> None:
+    """Refuse a resume where an actor's state.json is damaged (EpisodeStateError, one line naming it):
+    that actor would exit at once and crash-loop until the launcher gave up on it."""
+    from romannet.actor.episode_state import read_next_episode
+
+    for i in range(actors):
+        read_next_episode(run_dir / "actors" / f"actor-{i}" / "state.json", run_dir / "episodes" / f"actor-{i}")
 
 
 def _warn_left_spools(run_dir: Path, actors: int) -> None:

@@ -108,6 +108,22 @@ def test_actor_state_with_a_wrong_value(tmp_path: Path) -> None:
                    str(state), '"next_episode" must be a whole number')
 
 
+def test_resume_with_a_damaged_actor_state_is_refused_before_any_child_starts(tmp_path: Path) -> None:
+    from romannet.common.config import load_config
+    from romannet.common.configbase import write_toml
+
+    run = tmp_path / "runs" / "r"
+    write_toml(load_config(None, ['run_id="r"']), run / "config.toml")
+    (run / "actors" / "actor-0").mkdir(parents=True)
+    (run / "actors" / "actor-0" / "state.json").write_text('{"next_episode": 4}')
+    damaged = run / "actors" / "actor-1" / "state.json"
+    damaged.parent.mkdir(parents=True)
+    damaged.write_bytes(b"\x00" * 64)  # zeroed by a disk that lied
+    one_line_error(romannet("up", "--runs-dir", str(tmp_path / "runs"), "--name", "r", "--resume", "--actors", "2"),
+                   str(damaged), "not valid JSON")
+    assert not (run / "pids.json").exists() and not (run / "logs").exists()  # nothing was started
+
+
 # ---------------------------------------------------------------------------------------- ports in use
 @pytest.fixture
 def held_port() -> Iterator[int]:
