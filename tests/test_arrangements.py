@@ -1,4 +1,5 @@
-"""Arrangement test cases: VPG's text format, frame mapping, errors, and our 11 committed cases.
+"""Arrangement test cases: VPG's text format, frame mapping, errors, our 11 committed cases and the 11
+held-out ones (actor/sim/cases_heldout, never tuned on).
 
 Our case files end with one isolated object (after a `# isolated` comment); the lines before it are the
 tightly packed objects (3-6 per case, the paper's "challenging arrangements").
@@ -16,7 +17,9 @@ import pybullet as p
 import pytest
 
 from romannet.actor.sim.arrangements import (
+    CASE_SETS,
     CaseFormatError,
+    cases_dir,
     coppeliasim_euler_to_quaternion,
     default_cases,
     default_cases_dir,
@@ -29,6 +32,7 @@ from romannet.common.config import WorkspaceConfig
 
 WS = WorkspaceConfig()
 CASES = default_cases()
+HELDOUT = sorted(CASE_SETS["heldout"].glob("*.txt"))
 PACKED_GAP_MAX_M = 0.01  # every packed object has a neighbour at most this far away
 ISOLATED_GAP_MIN_M = 0.08  # the sanity-check object is clear of the packed ones
 
@@ -56,7 +60,18 @@ def test_eleven_cases_ship_with_the_package() -> None:
     assert all(c.parent == default_cases_dir() for c in CASES)
 
 
-@pytest.mark.parametrize("case", CASES, ids=lambda c: c.stem)
+def test_eleven_heldout_cases_ship_and_resolve_by_name(tmp_path: Path) -> None:
+    assert [c.name for c in HELDOUT] == [f"heldout_{k:02d}.txt" for k in range(1, 12)]
+    # Names distinct from ours, so reports (rows named by file stem) of the two sets never read as one.
+    assert not {c.stem for c in HELDOUT} & {c.stem for c in CASES}
+    assert cases_dir(None) == cases_dir("ours") == default_cases_dir()
+    assert cases_dir("heldout") == HELDOUT[0].parent and cases_dir("heldout") != default_cases_dir()
+    assert cases_dir(str(tmp_path)) == tmp_path and cases_dir(tmp_path) == tmp_path
+    for case in HELDOUT:  # one-line header naming the case, as ours have
+        assert case.read_text().startswith(f"# RoManNet held-out arrangement case {case.stem[-2:]}: ")
+
+
+@pytest.mark.parametrize("case", CASES + HELDOUT, ids=lambda c: c.stem)
 def test_case_loads_packed_objects_plus_one_isolated_in_the_workspace(case: Path) -> None:
     specs = load_case(case, WS)
     assert 3 <= len(specs) - 1 <= 6  # packed objects; the last one is isolated
@@ -67,7 +82,7 @@ def test_case_loads_packed_objects_plus_one_isolated_in_the_workspace(case: Path
         assert spec.shape in BLOCK_SHAPES
 
 
-@pytest.mark.parametrize("case", CASES, ids=lambda c: c.stem)
+@pytest.mark.parametrize("case", CASES + HELDOUT, ids=lambda c: c.stem)
 def test_case_is_tightly_packed_and_settles_in_place(case: Path) -> None:
     specs = load_case(case, WS)
     cid = p.connect(p.DIRECT)
@@ -223,3 +238,20 @@ def test_jitter_is_drawn_from_the_seed_and_zero_keeps_the_case_as_written() -> N
             assert out != edge and all(WS.x_min_m <= s.position_m[0] <= WS.x_max_m for s in out)
         branches.add(dx > 1e-4)
     assert branches == {True, False}
+
+
+@pytest.mark.parametrize("given", ["heldout", "ours", None])
+def test_eval_plans_a_case_set_by_name(given: str | None) -> None:
+    import argparse
+
+    from romannet.evaluate.cli import add_arguments, plan_scripted
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    argv = ["--policy", "oracle", "--task", "arrangement", "--runs", "2"]
+    args = parser.parse_args(argv + (["--cases", given] if given else []))
+    plan = plan_scripted(args)
+    expected = HELDOUT if given == "heldout" else CASES
+    assert plan.cases_dir == str(expected[0].parent)
+    assert len(plan.specs) == 2 * len(expected)
+    assert {s.case for s in plan.specs} == {c.stem for c in expected}

@@ -21,6 +21,10 @@ One object per line, whitespace separated: `mesh r g b x y z rx ry rz`
 `jitter_case` moves a loaded case rigidly (a small shift and turn of the whole arrangement, drawn from the
 episode's rng), so that the evaluation's runs of one case differ; the objects keep their relative poses.
 
+Case sets: `actor/sim/cases/` holds our 11 cases (the default, and what arrangement training draws from);
+`actor/sim/cases_heldout/` 11 harder ones that nothing is tuned on. `cases_dir` resolves a set's name
+("ours", "heldout") or a directory, as `romannet eval --cases` does.
+
 Blank lines and `#` comments are allowed. Objects outside the workspace (x, y) or below the floor are
 skipped with a warning; a malformed line raises CaseFormatError naming the file and the line number.
 """
@@ -45,6 +49,9 @@ VPG_WORKSPACE_X_MIN_M = -0.724
 VPG_WORKSPACE_Y_MIN_M = -0.224
 _VPG_BLOCK = re.compile(r"^(?:(?:.*[/\\])?blocks[/\\])?([0-8])\.obj$")
 _CASES_DIR = Path(__file__).resolve().parent / "cases"
+# Named case sets shipped with the package. "heldout": 11 harder arrangements (denser, angled, mixed, against
+# the workspace edge) that no setting is tuned on, so they measure generalisation rather than our tuning.
+CASE_SETS = {"ours": _CASES_DIR, "heldout": Path(__file__).resolve().parent / "cases_heldout"}
 
 
 class CaseFormatError(ValueError):
@@ -63,6 +70,16 @@ def default_cases_dir() -> Path:
 def default_cases() -> list[Path]:
     """Our 11 arrangement case files, sorted by name."""
     return sorted(_CASES_DIR.glob("case_*.txt"))
+
+
+def cases_dir(name_or_dir: str | Path | None) -> Path:
+    """The directory of a case set: a name of CASE_SETS ("ours", "heldout"), a directory path, or None for
+    ours. A name wins over a same-named relative directory; `./heldout` names the directory."""
+    if name_or_dir is None:
+        return _CASES_DIR
+    if isinstance(name_or_dir, str) and name_or_dir in CASE_SETS:
+        return CASE_SETS[name_or_dir]
+    return Path(name_or_dir)
 
 
 def coppeliasim_euler_to_quaternion(alpha: float, beta: float, gamma: float) -> tuple[float, float, float, float]:

@@ -3,6 +3,7 @@
     romannet eval runs/stack-h4 --task stacking --goal-height 2 3 4 5
     romannet eval runs/clutter --task clutter --objects 30 --object-set novel --protocol frozen
     romannet eval runs/clutter/checkpoints/ckpt-000002000 --task arrangement --cases my_cases/
+    romannet eval runs/clutter --task arrangement --cases heldout --protocol frozen
 
 CHECKPOINT is a run directory (its newest checkpoint is used) or one checkpoint directory. The run's
 config.toml gives the model, workspace, camera, reward and simulator; --task and the task flags say what
@@ -110,8 +111,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="clutter: objects per scene (30)")
     p.add_argument("--object-set", choices=["blocks", "novel"], default="blocks", action=_Given,
                    help="clutter: object set")
-    p.add_argument("--cases", metavar="DIR", action=_Given,
-                   help="arrangement: a directory of case files (default: ours)")
+    p.add_argument("--cases", metavar="SET|DIR", action=_Given,
+                   help="arrangement: a shipped case set, 'ours' (default) or 'heldout' (11 harder cases "
+                        "nothing is tuned on), or a directory of case files")
     p.add_argument("--goal-height", type=int, nargs="+", metavar="H", action=_Given,
                    help="stacking: goal heights (default: the run's)")
     p.add_argument("--max-steps", type=int, default=0, metavar="N",
@@ -262,7 +264,8 @@ def _plan_tests(args: argparse.Namespace, cfg: Any, *, path: Path | None, ckpt: 
                 run_dir: Path | None, config_path: Path | None, state: dict, task: str,
                 warnings: list[str] | None = None) -> CheckpointPlan:
     """The runs of an evaluation (cases, heights, seeds) under cfg; RomannetError on bad task flags."""
-    from romannet.actor.sim.arrangements import default_cases_dir, load_case
+    from romannet.actor.sim.arrangements import cases_dir as resolve_cases_dir
+    from romannet.actor.sim.arrangements import load_case
     from romannet.common.configbase import dumps_toml
 
     from .protocol import plan_runs
@@ -274,7 +277,7 @@ def _plan_tests(args: argparse.Namespace, cfg: Any, *, path: Path | None, ckpt: 
     case_files: list[Path] = []
     case_objects: list[int] = []
     if task == "arrangement":
-        cases_dir = Path(args.cases) if args.cases else default_cases_dir()
+        cases_dir = resolve_cases_dir(args.cases)
         case_files = sorted(p for p in cases_dir.glob("*.txt"))
         if not case_files:
             raise RomannetError(f"no case files (*.txt) in {cases_dir}")

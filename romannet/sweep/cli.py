@@ -56,7 +56,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     e.add_argument("--eval-object-set", choices=["blocks", "novel"], help="clutter: object set (blocks)")
     e.add_argument("--eval-goal-height", type=int, nargs="+", metavar="H",
                    help="stacking: goal heights (default: the recipes')")
-    e.add_argument("--eval-cases", metavar="DIR", help="arrangement: a directory of case files (default: ours)")
+    e.add_argument("--eval-cases", metavar="SET|DIR",
+                   help="arrangement: 'ours' (default), 'heldout' or a directory of case files")
     e.add_argument("--eval-max-steps", type=int, metavar="N",
                    help="actions per run before it ends as step_limit (0: 5x the ideal count, at least 30)")
     e.add_argument("--eval-workers", type=int, default=0, metavar="N",

@@ -225,7 +225,9 @@ def resolve_eval(args: argparse.Namespace, tasks: Mapping[str, str], heights: Ma
         return EvalSettings(**{**asdict(out), "objects": objects,
                                "object_set": _pick(args.eval_object_set, defaults["object_set"])})
     if args.eval_cases is not None:
-        cases = Path(args.eval_cases)
+        from romannet.actor.sim.arrangements import cases_dir
+
+        cases = cases_dir(args.eval_cases)
         if not cases.is_dir() or not any(cases.glob("*.txt")):
             raise RomannetError(f"--eval-cases {cases}: not a directory of case files (*.txt)")
         return EvalSettings(**{**asdict(out), "cases": str(cases.resolve())})
