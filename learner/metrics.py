@@ -85,11 +85,13 @@ def action_image(color_hm: np.ndarray, q_map: np.ndarray, row: int, col: int, an
 class LearnerMetrics:
     """Writes scalars to TensorBoard and the CSV, images to TensorBoard, curves to a PNG.
 
-    image_every_updates: cadence of action images (0 = never); plot_every_s: seconds between curve redraws.
+    image_every_updates: cadence of action images (0 = never); plot_every_s: seconds between curve redraws;
+    first_update: transitions the first update needs, named in the picture while there is no update.
     Use as a context manager or call close().
     """
 
-    def __init__(self, run_dir: str | Path, image_every_updates: int = 100, plot_every_s: float = 60.0):
+    def __init__(self, run_dir: str | Path, image_every_updates: int = 100, plot_every_s: float = 60.0,
+                 first_update: int | None = None):
         from torch.utils.tensorboard import SummaryWriter  # heavy import: only where metrics are written
 
         self.run_dir = Path(run_dir)
@@ -98,6 +100,7 @@ class LearnerMetrics:
         self.plot_every_s = float(plot_every_s)
         self.csv_path = self.run_dir / "metrics.csv"
         self.plot_path = self.run_dir / "learning_curves.png"
+        self.first_update = first_update
         self._history: dict[str, list[tuple[int, float]]] = {c: [] for _, cols in _PANELS for c in cols}
         self._load_history()
         new_file = not self.csv_path.exists() or self.csv_path.stat().st_size == 0
@@ -159,31 +162,46 @@ class LearnerMetrics:
 
     def plot(self) -> None:
         """Redraw learning_curves.png (atomically: written beside, then renamed)."""
-        import matplotlib
-
-        matplotlib.use("Agg")  # no display on a learner box; must precede pyplot's import
         import matplotlib.pyplot as plt
 
         self._next_plot_s = time.monotonic() + self.plot_every_s
-        fig, axes = plt.subplots(len(_PANELS), 1, figsize=(8, 2.4 * len(_PANELS)), sharex=True)
+        fig = self.figure()
         try:
-            for ax, (title, columns) in zip(axes, _PANELS, strict=True):
-                for column in columns:
-                    points = self._history[column]
-                    if points:
-                        xs, ys = zip(*points, strict=True)
-                        ax.plot(xs, ys, label=column, linewidth=0.8)
-                ax.set_title(title, fontsize=9)
-                if len(columns) > 1 and any(self._history[c] for c in columns):
-                    ax.legend(fontsize=7)
-                ax.grid(alpha=0.3)
-            axes[-1].set_xlabel("update")
-            fig.tight_layout()
             tmp = self.plot_path.with_suffix(".tmp.png")
             fig.savefig(tmp, dpi=80)
             tmp.replace(self.plot_path)
         finally:
             plt.close(fig)
+
+    def figure(self):  # -> matplotlib.figure.Figure (matplotlib is imported only where a picture is drawn)
+        """The learning curves as a figure; without any update yet, a line in it says why it is empty."""
+        import matplotlib
+
+        matplotlib.use("Agg")  # no display on a learner box; must precede pyplot's import
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(len(_PANELS), 1, figsize=(8, 2.4 * len(_PANELS)), sharex=True)
+        for ax, (title, columns) in zip(axes, _PANELS, strict=True):
+            for column in columns:
+                points = self._history[column]
+                if points:
+                    xs, ys = zip(*points, strict=True)
+                    ax.plot(xs, ys, label=column, linewidth=0.8)
+            ax.set_title(title, fontsize=9)
+            if len(columns) > 1 and any(self._history[c] for c in columns):
+                ax.legend(fontsize=7)
+            ax.grid(alpha=0.3)
+        axes[-1].set_xlabel("update")
+        fig.tight_layout()
+        if not any(self._history.values()):
+            fig.text(0.5, 0.5, self.no_update_note(), ha="center", va="center", fontsize=11, wrap=True,
+                     bbox={"boxstyle": "round", "facecolor": "lightyellow", "edgecolor": "0.5"})
+        return fig
+
+    def no_update_note(self) -> str:
+        """What the empty picture says: no update, and what the first one waits for."""
+        need = "" if self.first_update is None else f"\nthe first needs {self.first_update} transitions in replay"
+        return f"no learner update yet{need}\n(replay.min_size_to_sample, learner.min_replay_size)"
 
     def flush(self) -> None:
         """Push buffered rows and events to disk (at checkpoints, so files and checkpoint agree)."""

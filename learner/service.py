@@ -36,6 +36,7 @@ import torch
 import zenoh
 
 from romannet.common.config import Config
+from romannet.common.config_pacing import transitions_before_first_update
 from romannet.common.configbase import write_toml
 from romannet.common.errors import DecodeError
 from romannet.common.interfaces import ReplayClient
@@ -112,7 +113,8 @@ def run_learner(cfg: Config, run_dir: str | Path, replay_client: ReplayClient, s
     counters = _Counters()
     if resumed_from is not None:
         counters.checkpointed_at = trainer.updates
-    metrics = LearnerMetrics(run_dir, opts.image_every_updates, opts.plot_every_s)
+    metrics = LearnerMetrics(run_dir, opts.image_every_updates, opts.plot_every_s,
+                             first_update=transitions_before_first_update(cfg.replay, lcfg))
     wire_dtype = resolve_wire_dtype(lcfg.weights_wire_dtype, cfg.model.precision)
     publisher = WeightsPublisher(session, cfg.run_id, wire_dtype)
     log.info("weights go out in %s (learner.weights_wire_dtype = %s)", wire_dtype, lcfg.weights_wire_dtype)

@@ -445,7 +445,7 @@ def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, 
         "actions": snap.actions, "actions_this_launch": snap.actions - earlier_actions, "episodes": snap.episodes,
         "completed_episodes": snap.completed_episodes,
         "pick_success": snap.successful_picks / snap.picks if snap.picks else None,
-        "efficiency": snap.efficiency, "learner_updates": snap.updates, "trained": bool(snap.updates),
+        "efficiency": snap.efficiency, "learner_updates": snap.updates or 0, "trained": bool(snap.updates),
         "learner_explore_rate": snap.learner_explore_rate, "acked": snap.acked, "spooled": snap.spooled,
         "replay_size": replay.get("size") if replay else snap.replay_size,
         "replay_inserts": replay.get("inserts") if replay else snap.replay_inserts,
@@ -466,7 +466,7 @@ def _summary(run_dir: Path, snap: FleetSnapshot, replay: dict[str, Any] | None, 
              "success %s, %s learner updates, replay holds %s (acked by actors: %d, still spooled: %d), "
              "%d restart(s); summary in %s",
              run_dir.name, outcome.replace("_", " "), elapsed_s, snap.actions, summary["actions_this_launch"],
-             snap.episodes, snap.completed_episodes, pick, snap.updates if snap.updates is not None else 0,
+             snap.episodes, snap.completed_episodes, pick, summary["learner_updates"],
              summary["replay_size"], snap.acked, snap.spooled, sup.crashes, run_dir / "summary.json")
     if not snap.updates:
         log.warning("run %s did not train: the learner made no update (its first needs %d transitions in replay, "

@@ -228,7 +228,7 @@ def test_a_run_too_short_to_train_says_so_first_and_in_its_summary(tmp_path: Pat
     assert "this run will not train: the learner's first update needs 8 transitions" in out, out
     assert "run short did not train: the learner made no update" in out, out
     summary = json.loads((up.run_dir / "summary.json").read_text())
-    assert summary["trained"] is False and not summary["learner_updates"], summary
+    assert summary["trained"] is False and summary["learner_updates"] == 0, summary
 
 
 def test_replay_outages_mid_run_lose_and_duplicate_nothing(tmp_path: Path, ups: list[Up]) -> None:
