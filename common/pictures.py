@@ -66,18 +66,31 @@ def with_margin(panel: np.ndarray, margin: int) -> np.ndarray:
 
 def colorbar(height: int, colormap: int, lo: float, hi: float, label: str, ticks: int = 4) -> np.ndarray:
     """A vertical colour bar (hi at the top) with `ticks` + 1 labelled values and a label on top, BGR."""
-    bar_w, text_w, top, bottom = 16, 64, 22, 10
+    step = (hi - lo) / ticks
+    values = [v if abs(v) > 1e-9 * abs(step) else 0.0 for v in (hi - i * step for i in range(ticks + 1))]
+    labels = tick_labels(values)
+    text_w = max(64, *(cv2.getTextSize(t, _FONT, 0.4, 1)[0][0] + 4 for t in labels))
+    bar_w, top, bottom = 16, 22, 10
     panel = np.full((height, bar_w + text_w + 8, 3), BACKGROUND_BGR, np.uint8)
     span = height - top - bottom
     ramp = np.linspace(255, 0, span).astype(np.uint8)[:, None].repeat(bar_w, axis=1)
     panel[top:top + span, 4:4 + bar_w] = cv2.applyColorMap(ramp, colormap)
     cv2.putText(panel, label, (2, 14), _FONT, 0.42, TEXT_BGR, 1, cv2.LINE_AA)
-    for i in range(ticks + 1):
+    for i, text in enumerate(labels):
         y = top + round(i * (span - 1) / ticks)
-        value = hi - i * (hi - lo) / ticks
         cv2.line(panel, (4 + bar_w, y), (8 + bar_w, y), TEXT_BGR, 1)
-        cv2.putText(panel, _tick(value), (12 + bar_w, y + 4), _FONT, 0.4, TEXT_BGR, 1, cv2.LINE_AA)
+        cv2.putText(panel, text, (12 + bar_w, y + 4), _FONT, 0.4, TEXT_BGR, 1, cv2.LINE_AA)
     return panel
+
+
+def tick_labels(values: list[float], most_extra_digits: int = 4) -> list[str]:
+    """Labels of the values with the fewest digits that keep different values apart: a Q map's range can
+    be a few thousandths of its values, where 3 significant digits label every tick alike."""
+    for extra in range(most_extra_digits + 1):
+        labels = [_tick(v, extra) for v in values]
+        if len(set(labels)) == len(set(values)):
+            break
+    return labels
 
 
 def side_by_side(panels: list[np.ndarray], gap: int = 8) -> np.ndarray:
@@ -111,8 +124,8 @@ def margin_px(push_length_px: float, gripper_width_px: float, scale: float, inne
     return min(math.ceil(max(push_length_px, half_bar) * scale) + 8, inner_px // 3)
 
 
-def _tick(value: float) -> str:
-    return f"{value:.1e}" if 0 < abs(value) < 0.01 else f"{value:.3g}"
+def _tick(value: float, extra_digits: int = 0) -> str:
+    return f"{value:.{1 + extra_digits}e}" if 0 < abs(value) < 0.01 else f"{value:.{3 + extra_digits}g}"
 
 
 def draw_action(img: np.ndarray, glyph: ActionGlyph, hm_rows: int, scale: float, offset: int) -> None:

@@ -16,6 +16,7 @@ from romannet.common.pictures import (
     camera_turns,
     heightmap_panel,
     margin_px,
+    tick_labels,
     titled,
     top_view,
     turn_camera,
@@ -96,3 +97,11 @@ def test_learner_action_image_is_drawn_from_above_too() -> None:
     assert q_panel[-1, 20].sum() > q_panel[0, 20].sum()  # bright (yellow) at the bottom, dark on top
     rows = np.nonzero(image[:, :40, 0] == 255)[0]  # the red ring of the action on the colour heightmap
     assert rows.min() >= 30
+
+
+def test_colour_bar_ticks_tell_close_values_apart() -> None:
+    """An untrained net's Q map spans a few thousandths of its values: every tick must still differ."""
+    q = [0.00131 - i * 0.00002 for i in range(5)]
+    assert tick_labels(q) == ["1.31e-03", "1.29e-03", "1.27e-03", "1.25e-03", "1.23e-03"]
+    assert tick_labels([1.2345, 1.2355]) == ["1.23", "1.24"]
+    assert tick_labels([0.3, 0.25, 0.2, 0.15, 0.1, 0.05, 0.0]) == ["0.3", "0.25", "0.2", "0.15", "0.1", "0.05", "0"]

@@ -36,7 +36,7 @@ from romannet.common.episode_file import (
 from romannet.common.errors import RomannetError
 from romannet.common.heightmap import look_at
 from romannet.common.imagecodec import decode_color_png, decode_depth_png, units_to_depth_m
-from romannet.common.pictures import TEXT_BGR, ActionGlyph, camera_turns
+from romannet.common.pictures import TEXT_BGR, ActionGlyph, camera_turns, tick_labels
 
 from .bar import ProgressBar
 from .render import FAIL_BGR, OK_BGR, StepView, compose, decode_compressed, decode_raw16
@@ -89,7 +89,8 @@ def _text_lines(step: RecordedStep, t, episode_id: str) -> tuple[tuple[str, tupl
     third = f"weights v{t.policy_version}   explore rate {t.explore_rate:.2f}"
     q_range = (record.get("q_ranges") or {}).get(primitive)
     if isinstance(q_range, list | tuple) and len(q_range) == 2:
-        third += f"   Q map {float(q_range[0]):.3f}..{float(q_range[1]):.3f}"
+        lo, hi = tick_labels([float(q_range[0]), float(q_range[1])])
+        third += f"   Q map {lo}..{hi}"
     if t.done:
         third += f"   END: {t.done_reason or 'done'}"
     return ((first, TEXT_BGR), (second, OK_BGR if t.success else FAIL_BGR), (third, TEXT_BGR))
