@@ -202,9 +202,10 @@ UP_SETS = ["model.channels=4", "model.residual_blocks=1", "model.num_threads=1",
 
 def test_up_foxglove_serves_the_actor_live(tmp_path: Path) -> None:
     """`romannet up --foxglove PORT`: while the actor acts, a client offering the current app's protocols
-    gets its heightmaps, Q maps, camera, frames and each /step, the bytes the actor records."""
+    gets its heightmaps, Q maps, camera, frames and each /step, the bytes the actor records. The run has no
+    action limit: it is still running when Ctrl-C comes, however slowly the client was served."""
     port = free_port()
-    argv = ["up", "--runs-dir", str(tmp_path / "runs"), "--name", "fox", "--actors", "1", "--max-actions", "40",
+    argv = ["up", "--runs-dir", str(tmp_path / "runs"), "--name", "fox", "--actors", "1", "--max-actions", "0",
             "--robot", "gripper", "--resolution", "0.007", "--foxglove", str(port)]
     for s in UP_SETS:
         argv += ["--set", s]
@@ -240,7 +241,7 @@ def test_up_foxglove_serves_the_actor_live(tmp_path: Path) -> None:
             code = proc.wait(120)
     out = log_path.read_text()
     assert code == 0, out[-3000:]
-    assert "live view of run fox on ws://127.0.0.1" in out
+    assert "live view of run fox on ws://127.0.0.1" in out and "run fox stopped by signal" in out, out[-3000:]
     assert {"/actor-0/heightmap/color", "/actor-0/heightmap/depth", "/actor-0/camera/color", "/actor-0/tf",
             "/actor-0/camera/calibration", "/actor-0/transition"} <= set(got), sorted(got)
     assert any(t.startswith("/actor-0/q/") for t in got), sorted(got)
