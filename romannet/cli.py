@@ -29,8 +29,10 @@ from romannet.logsetup import setup_logging
 log = logging.getLogger("romannet.cli")
 
 EXAMPLES = {
-    "up": ("romannet up --actors 2 --max-actions 2000\n  romannet up --name demo --robot gripper --resolution 0.007 "
-           "--max-actions 60\n  romannet up --name demo --resume\n  romannet up --name demo --foxglove 8765"),
+    "up": ("romannet up --config configs/experiments/clutter.toml --actors 2 --max-actions 2000\n"
+           "  romannet up --config configs/experiments/clutter.toml --name demo --robot gripper --resolution 0.007 "
+           "--max-actions 120   # a quick look: ~30 learner updates\n"
+           "  romannet up --name demo --resume\n  romannet up --name demo --foxglove 8765"),
     "info": "romannet info --json --set model.channels=32",
     "bench": ("romannet bench inference --json\n  romannet bench replay --json --inserts 2000 --repeats 200\n"
               "  romannet bench sim --json --actions 10 --robots arm,gripper\n"
@@ -364,14 +366,22 @@ def build_parser() -> argparse.ArgumentParser:
     msub = p.add_subparsers(dest="models_cmd", required=True, metavar="<command>")
     pk = msub.add_parser("pack", help="package a run's newest (or one) checkpoint with its evaluation report",
                          description="package a run's newest (or one) checkpoint with its evaluation report; "
-                         "refuses to replace a package whose report's completion rate is as good or better")
+                         "refuses to replace a package whose report's completion rate is as good or better",
+                         epilog="example:\n  romannet models pack runs/clutter --eval "
+                         "runs/clutter/eval/clutter-frozen-20260101-120000 --out models/clutter",
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
     pk.add_argument("source", metavar="RUN_OR_CKPT", help="a run directory (newest checkpoint) or a ckpt-* directory")
     pk.add_argument("--eval", dest="eval_dir", required=True, metavar="EVAL_DIR",
                     help="the `romannet eval` output directory of that checkpoint (report.json, report.md)")
     pk.add_argument("--out", required=True, metavar="DIR", help="the package directory, e.g. models/clutter")
     pk.add_argument("--force", action="store_true", help="replace an existing package even if it scored better")
     ck = msub.add_parser("check", help="check a package (files, sha256, tensors), or with --init any weights "
-                         "source against a run's config")
+                         "source against a run's config",
+                         description="check a package (files, sha256, tensors), or with --init any weights source "
+                         "(a package, a run, a checkpoint) against the config a run would train with",
+                         epilog="example:\n  romannet models check models/clutter\n  romannet models check "
+                         "models/clutter --init --config configs/experiments/clutter.toml",
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
     ck.add_argument("path", metavar="DIR", help="a model package, or with --init also a run or a checkpoint")
     ck.add_argument("--init", action="store_true",
                     help="check DIR as an --init-from source for a run with --config/--set (default config)")

@@ -1,6 +1,6 @@
 """`romannet up`: the whole fleet on one machine (replay server, learner, N actors) until done or Ctrl-C.
 
-    romannet up --actors 2 --max-actions 2000
+    romannet up --config configs/experiments/clutter.toml --actors 2 --max-actions 2000
     romannet up --name run-1 --resume
     romannet up --name offline-1 --actors 0 --from-recordings runs/run-1/episodes   (learner/offline.py)
     romannet up --name ft-1 --config models/clutter/config.toml --init-from models/clutter

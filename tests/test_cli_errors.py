@@ -247,3 +247,25 @@ def test_live_views_on_a_port_in_use(tmp_path: Path, held_port: int) -> None:
     one_line_error(romannet("up", "--runs-dir", str(tmp_path / "runs"), "--name", "fox", "--actors", "1",
                             "--max-actions", "1", "--foxglove", str(held_port)), *needles)
     assert not (tmp_path / "runs" / "fox" / "pids.json").exists()  # no child was started
+
+
+def test_every_verb_and_sub_command_help_ends_with_an_example() -> None:
+    """The README's promise: `romannet <verb> [<sub-command>] --help` ends with a copy-paste example."""
+    from romannet.cli import build_parser
+
+    def walk(parser: argparse.ArgumentParser, path: tuple[str, ...]):
+        yield path, parser
+        for action in parser._actions:  # argparse keeps sub-commands only here
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    yield from walk(sub, (*path, name))
+
+    missing = []
+    for path, parser in walk(build_parser(), ()):
+        if not path:
+            continue
+        text = parser.format_help().rstrip()
+        example = text.rsplit("example:\n", 1)[-1] if "example:\n" in text else ""
+        if not example.lstrip().startswith(("romannet ", "sudo romannet ")):
+            missing.append(" ".join(path))
+    assert not missing, f"no example at the end of --help: {missing}"
