@@ -287,22 +287,33 @@ def run(args: argparse.Namespace) -> int:
     from romannet.evaluate.run_report import LiveRunReport
 
     check_init_from(args)
-    run_dir, cfg = prepare_run(args)
-    ledger = ActorLedger.load(run_dir / "actors" / LEDGER_FILE)  # a fresh run has none yet
-    if args.resume:
-        for name, status in read_actor_statuses(run_dir).items():  # the last launch's processes
-            ledger.retire(name, status)
-    ledger.mark_start()
+    live = None
+    if getattr(args, "foxglove", None) is not None:  # a thread of the launcher reading the files actors write
+        from romannet.mcaptools.live import LiveView, announce_live_view, run_folders
+
+        # Bound before the run directory exists: a port in use is one line and leaves no half-made run that
+        # the corrected command would be refused for.
+        live = LiveView(dict, args.foxglove, args.foxglove_host)
+    try:
+        run_dir, cfg = prepare_run(args)
+        ledger = ActorLedger.load(run_dir / "actors" / LEDGER_FILE)  # a fresh run has none yet
+        if args.resume:
+            for name, status in read_actor_statuses(run_dir).items():  # the last launch's processes
+                ledger.retire(name, status)
+        ledger.mark_start()
+    except BaseException:
+        if live is not None:
+            live.close()
+        raise
     if args.max_actions and ledger.start_total() >= args.max_actions:
         log.info("run %s already has %d actions (--max-actions %d): nothing to do; raise --max-actions to "
                  "train on", run_dir.name, ledger.start_total(), args.max_actions)
+        if live is not None:
+            live.close()
         return 0
-    live = None
-    if getattr(args, "foxglove", None) is not None:  # a thread of the launcher reading the files actors write
-        from romannet.mcaptools.live import run_folders, start_live_view
-
-        live = start_live_view(run_folders(run_dir / "episodes"), args.foxglove, args.foxglove_host,
-                               f"run {run_dir.name}")
+    if live is not None:
+        live.follow(run_folders(run_dir / "episodes"))
+        announce_live_view(live, args.foxglove_host, f"run {run_dir.name}")
     file_handler = _attach_log_file(run_dir / "launcher.log")
     display = Progress("up", total=args.max_actions or None, unit="actions", log_every_s=args.progress_every,
                        redraw_s=1.0)

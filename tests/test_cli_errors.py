@@ -239,14 +239,15 @@ def test_choice_hints() -> None:
 
 
 def test_live_views_on_a_port_in_use(tmp_path: Path, held_port: int) -> None:
-    """`mcap live`, `actor --foxglove` and `up --foxglove`: one line, before any actor or fleet starts."""
+    """`mcap live`, `actor --foxglove` and `up --foxglove`: one line, before any actor or fleet starts and
+    before up makes the run's directory."""
     (tmp_path / "episodes" / "actor-0").mkdir(parents=True)
     needles = (f"cannot serve Foxglove on 127.0.0.1:{held_port}", "already in use")
     one_line_error(romannet("mcap", "live", str(tmp_path / "episodes"), "--foxglove", str(held_port)), *needles)
     one_line_error(romannet("actor", "--run-dir", str(tmp_path / "run"), "--foxglove", str(held_port)), *needles)
     one_line_error(romannet("up", "--runs-dir", str(tmp_path / "runs"), "--name", "fox", "--actors", "1",
                             "--max-actions", "1", "--foxglove", str(held_port)), *needles)
-    assert not (tmp_path / "runs" / "fox" / "pids.json").exists()  # no child was started
+    assert not (tmp_path / "runs" / "fox").exists()  # no run directory the same command, fixed, would refuse
 
 
 def test_every_verb_and_sub_command_help_ends_with_an_example() -> None:

@@ -152,6 +152,10 @@ class LiveView:
                 log.exception("live view: reading the episodes failed; trying again")
             self._stop.wait(self._poll_s)
 
+    def follow(self, watch: Callable[[], dict[str, Path]]) -> None:
+        """Serve the folders `watch()` returns from now on (a view opened before its run directory existed)."""
+        self._watch = watch
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(10)
@@ -165,9 +169,13 @@ def run_folders(episodes_root: Path) -> Callable[[], dict[str, Path]]:
 
 def start_live_view(watch: Callable[[], dict[str, Path]], port: int, host: str, what: str) -> LiveView:
     view = LiveView(watch, port, host)
+    announce_live_view(view, host, what)
+    return view
+
+
+def announce_live_view(view: LiveView, host: str, what: str) -> None:
     log.info("live view of %s on ws://%s:%d (Foxglove app: Open connection -> Foxglove WebSocket), or %s", what,
              host, view.port, view.server.app_url())
-    return view
 
 
 def run_live(args: argparse.Namespace) -> int:
