@@ -32,6 +32,7 @@ RETIRED: dict[str, Any] = {
     "model.dropout": 0.0,
     "learner.train_rotation_on_success_only": True,
     "replay.group_commit": True,
+    "learner.augment_rotation": False,
 }
 
 

@@ -68,10 +68,6 @@ class LearnerConfig:
     # pixel of the Q label's support (averaged), the executed angle being the target for the action poses
     # around it, as GR-ConvNet trains its angle maps over a grasp's region rather than one pixel.
     rotation_support: Literal["pixel", "kernel"] = "pixel"
-    # Train each sampled transition turned by a random yaw about its executed pixel, the action's angle turned
-    # with it (learner/augment.py): the same pick at every orientation of the scene, so the rotation head
-    # learns the angle relative to the object rather than the yaws the objects happened to have.
-    augment_rotation: bool = False
     # Forward + backward over a window of this many pixels around each executed pixel instead of the whole
     # heightmap (learner/crop.py): 128 holds the label's support with the nets' receptive field around it, so
     # the losses equal the whole image's, at a third of the cost at 224 px. 0 = the whole heightmap.

@@ -11,8 +11,7 @@ One `train_step(batch)`:
    learner.rotation_failure_weight: at the executed pixel, or over the support with learner.rotation_support
    = "kernel"; none for a net with model.angle_bins, whose executed bin's Q map is the one trained)
    + learner.executed_pixel_weight x the paper's Huber(Q(s_t, a_t) - Y_t) at the executed pixel,
-   times the item's importance-sampling weight, averaged over the batch (with learner.augment_rotation each
-   item is first turned by a random yaw about its executed pixel, learner/augment.py). Only the executed
+   times the item's importance-sampling weight, averaged over the batch. Only the executed
    primitives' nets get gradients; the others keep `.grad is None`, so SGD skips them entirely (no weight
    decay, no momentum).
 4. One SGD step; the exploration rate is updated with the paper's L_t (the Huber of the executed pixel's
@@ -52,7 +51,6 @@ from romannet.common.model import RoManNet, angle_bin, preprocess_batch, state_d
 from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 
-from .augment import augment_yaws, rotated_transition
 from .crop import crop_origin
 from .losses import (
     executed_pixel_loss,
@@ -325,9 +323,6 @@ class Trainer:
                     is_weights: list[float]) -> _GroupLoss:
         """The loss of one primitive's items in one forward pass of its net (learner/losses.py)."""
         cfg = self.cfg
-        if cfg.augment_rotation:  # each item at a random yaw about its executed pixel
-            ts = [rotated_transition(t, phi) for t, phi in
-                  zip(ts, augment_yaws(self.seed, self.updates, p, len(ts)), strict=True)]
         g = self._group_inputs(ts, v_next)
         net = self.model.nets[p]
         ar = torch.arange(len(ts), device=self.device)
