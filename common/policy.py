@@ -1,8 +1,9 @@
 """The actor's decision: run only the nets that can be chosen, then select an action from their maps.
 
 `decide` accepts either a plain `RoManNet` (the fp32 eager reference, e.g. for evaluation and tests) or an
-`InferenceEngine`, the actor's fast path. The engine runs an inference-only copy of each net, FastNet
-(common/fastnet.py: BatchNorm folded, channels_last, prepacked oneDNN ops; fp32 or bf16).
+`InferenceEngine`, the actor's fast path. The engine runs an inference-only copy of each net: FastNet
+(common/fastnet.py: BatchNorm folded, channels_last, prepacked oneDNN ops; fp32 or bf16) or Int8Net
+(common/int8net.py: the trunk in int8, for CPUs without native bf16). `model.precision` picks between them.
 
 Selection (argmax, or exploration over candidates) lives in `exploration.select_action`.
 """
@@ -10,6 +11,7 @@ Selection (argmax, or exploration over candidates) lives in `exploration.select_
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -25,6 +27,7 @@ from .config import ExplorationConfig, ModelConfig
 from .exploration import select_action
 from .failure_memory import FailureMemory, join_masks
 from .fastnet import FastNet, fused_ops_available
+from .int8net import Int8Net, int8_ops_available
 from .model import (
     SYMMETRIC_PRIMITIVES,
     RoManNet,
@@ -38,6 +41,13 @@ from .model import (
 logger = logging.getLogger(__name__)
 
 BF16_CPU_FLAGS = ("avx512_bf16", "amx_bf16")
+INFERENCE_PRECISIONS = ("fp32", "bf16", "int8")
+# int8's error at a map's worst pixel, as a share of the maps' std: median 0.007 with AVX2 kernels, 0.003 with
+# VNNI/AMX (docs/benchmarks.md). A decision whose best two pixels are closer than this share is rerun in fp32.
+INT8_TIE_FRACTION = 0.01
+# oneDNN ISA limits (ONEDNN_MAX_CPU_ISA) under which it has no native bf16, or not even AVX2.
+ONEDNN_ISAS_WITHOUT_AVX2 = ("SSE41", "AVX")
+ONEDNN_ISAS_WITHOUT_BF16 = ONEDNN_ISAS_WITHOUT_AVX2 + ("AVX2", "AVX2_VNNI", "AVX512_CORE", "AVX512_CORE_VNNI")
 
 
 @dataclass(frozen=True)
@@ -59,33 +69,78 @@ def nets_to_run(holding: bool, primitives: Sequence[str]) -> tuple[str, ...]:
 
 
 @lru_cache(maxsize=1)
-def cpu_bf16_flags() -> tuple[str, ...]:
-    """The native-bf16 CPU flags present (from /proc/cpuinfo; empty where unreadable or absent)."""
+def cpu_flags() -> frozenset[str]:
+    """The CPU's feature flags (from /proc/cpuinfo; empty where unreadable)."""
     try:
         with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
             for line in f:
                 if line.startswith("flags"):
-                    present = set(line.split(":", 1)[1].split())
-                    return tuple(flag for flag in BF16_CPU_FLAGS if flag in present)
+                    return frozenset(line.split(":", 1)[1].split())
     except OSError:
         pass
-    return ()
+    return frozenset()
+
+
+def cpu_bf16_flags() -> tuple[str, ...]:
+    """The native-bf16 CPU flags present (empty where unreadable or absent)."""
+    present = cpu_flags()
+    return tuple(flag for flag in BF16_CPU_FLAGS if flag in present)
+
+
+def onednn_isa_cap() -> str:
+    """oneDNN's ISA limit set in the environment (ONEDNN_MAX_CPU_ISA, e.g. "AVX2"), or "" where none is."""
+    for name in ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA"):
+        value = os.environ.get(name, "").strip().upper()
+        if value and value != "ALL":
+            return value
+    return ""
+
+
+def native_bf16() -> bool:
+    """Whether oneDNN computes bf16 natively here: the CPU has the flags and no ISA limit hides them."""
+    return (bool(cpu_bf16_flags()) and torch.backends.mkldnn.is_available()
+            and onednn_isa_cap() not in ONEDNN_ISAS_WITHOUT_BF16)
+
+
+def int8_wins() -> bool:
+    """Whether int8 decisions beat fp32 here: oneDNN's int8 convolutions on an x86 CPU with AVX2 or more."""
+    return "avx2" in cpu_flags() and int8_ops_available() and onednn_isa_cap() not in ONEDNN_ISAS_WITHOUT_AVX2
 
 
 def resolve_precision(precision: str) -> str:
-    """"fp32" or "bf16": "auto" picks bf16 only where the CPU computes it natively."""
+    """"fp32" or "bf16" (the learner's numerics): "auto" picks bf16 only where the CPU computes it natively."""
     if precision == "auto":
-        return "bf16" if cpu_bf16_flags() and torch.backends.mkldnn.is_available() else "fp32"
+        return "bf16" if native_bf16() else "fp32"
     if precision not in ("fp32", "bf16"):
         raise ValueError(f"precision {precision!r} must be 'auto', 'fp32' or 'bf16'")
-    if precision == "bf16" and not cpu_bf16_flags():
-        logger.warning("precision bf16 requested but the CPU has none of %s: bf16 will be emulated (slow)",
-                       BF16_CPU_FLAGS)
+    if precision == "bf16" and not native_bf16():
+        logger.warning("precision bf16 requested but the CPU has none of %s (or oneDNN is limited to %s): bf16 "
+                       "will be emulated (slow)", BF16_CPU_FLAGS, onednn_isa_cap() or "its default ISA")
     return precision
+
+
+def resolve_inference_precision(precision: str) -> str:
+    """model.precision for the actor's decisions: "fp32", "bf16" or "int8"."""
+    if precision == "auto":
+        return "bf16" if native_bf16() else "fp32"
+    if precision == "int8":
+        if not int8_ops_available():
+            raise ValueError("precision 'int8' needs oneDNN's int8 convolutions (torch.ops.onednn.qconv2d_pointwise"
+                             "), which this PyTorch build or CPU lacks: use 'auto' or 'fp32'")
+        if not int8_wins():
+            logger.warning("precision int8 requested on a CPU without AVX2 (or with oneDNN limited to %s): "
+                           "it may be slower than fp32", onednn_isa_cap())
+        return precision
+    if precision not in INFERENCE_PRECISIONS:
+        raise ValueError(f"precision {precision!r} must be 'auto', 'fp32', 'bf16' or 'int8'")
+    return resolve_precision(precision)
 
 
 class InferenceEngine:
     """The actor's fast path around a RoManNet: eval mode, inference mode, folded/prepacked nets.
+
+    With precision int8, decide() reruns a decision whose best two pixels int8 cannot order (`near_tie`) with
+    the exact fp32 nets; `exact_reruns` counts them.
 
     With two or more threads, nets that run in the same decision (PushNet and PickNet) run concurrently,
     each on its own share of the threads, instead of one after another on all of them: as fast on an idle
@@ -98,7 +153,7 @@ class InferenceEngine:
         cfg = cfg or (model.cfg if model is not None else ModelConfig())
         self.cfg = cfg
         self.model = (model if model is not None else RoManNet(cfg, seed=seed)).eval()
-        self.precision = resolve_precision(cfg.precision)
+        self.precision = resolve_inference_precision(cfg.precision)
         self.fused = fused_ops_available()
         if cfg.num_threads > 0:
             torch.set_num_threads(cfg.num_threads)
@@ -110,17 +165,23 @@ class InferenceEngine:
             self._pool = ThreadPoolExecutor(1, thread_name_prefix="romannet-net",
                                             initializer=torch.set_num_threads,
                                             initargs=(self._threads_per_net,))
-        self.nets: dict[str, FastNet] = {}
+        self.nets: dict[str, FastNet | Int8Net] = {}
+        self.tie_fraction = INT8_TIE_FRACTION if self.precision == "int8" else 0.0
+        self.exact_reruns = 0
         self._rebuild()
         logger.info("inference engine: precision %s (cfg %s, cpu flags %s), fused oneDNN ops %s, %d threads%s",
                     self.precision, cfg.precision, ",".join(cpu_bf16_flags()) or "none", self.fused,
                     self.threads, f", nets in parallel on {self._threads_per_net} each" if self._pool else "")
 
     def _rebuild(self) -> None:
-        self.nets = {name: FastNet(net, self.precision, self.fused) for name, net in self.model.nets.items()}
+        if self.precision == "int8":
+            self.nets = {name: Int8Net(net, self.fused) for name, net in self.model.nets.items()}
+        else:
+            self.nets = {name: FastNet(net, self.precision, self.fused) for name, net in self.model.nets.items()}
 
     def load_state(self, tensors: Mapping[str, Tensor]) -> None:
-        """Swap in new weights (validated; DecodeError on mismatch) and refold them (tens of ms)."""
+        """Swap in new weights (validated; DecodeError on mismatch) and refold them (tens of ms; int8 also
+        recalibrates: one fp32 and one int8 pass of each net on the calibration scene)."""
         load_tensors(self.model, tensors)
         self.model.eval()
         self._rebuild()
@@ -131,28 +192,43 @@ class InferenceEngine:
             self._pool.shutdown(wait=True)
             self._pool = None
 
-    def _run(self, name: str, x: Tensor) -> Tensor:
+    def _run(self, name: str, x: Tensor, exact: bool = False) -> Tensor:
+        net = self.nets[name]
         with torch.inference_mode():  # thread-local: the worker thread needs its own
-            return self.nets[name](x)[0]
+            return (getattr(net, "exact", net) if exact else net)(x)[0]
 
-    def forward(self, x: Tensor, primitives: Sequence[str]) -> dict[str, Tensor]:
-        """{primitive: (h, w, 1 + R) fp32 tensor of (q, R rotation channels)} for a (1, 4, h, w) preprocessed input."""
+    def forward(self, x: Tensor, primitives: Sequence[str], exact: bool = False) -> dict[str, Tensor]:
+        """{primitive: (h, w, 1 + R) fp32 tensor of (q, R rotation channels)} for a (1, 4, h, w) preprocessed input.
+        exact: an int8 engine's fp32 nets (others have no second form)."""
         names = tuple(primitives)
         if self._pool is None or len(names) < 2:
-            return {p: self._run(p, x) for p in names}
-        futures = {p: self._pool.submit(self._run, p, x) for p in names[1:]}
+            return {p: self._run(p, x, exact) for p in names}
+        futures = {p: self._pool.submit(self._run, p, x, exact) for p in names[1:]}
         previous = torch.get_num_threads()
         torch.set_num_threads(self._threads_per_net)  # this thread's share while the worker runs the other net
         try:
-            outputs = {names[0]: self._run(names[0], x)}
+            outputs = {names[0]: self._run(names[0], x, exact)}
         finally:
             torch.set_num_threads(previous)
         outputs.update((p, f.result()) for p, f in futures.items())
         return outputs
 
-    def infer(self, color_hm: np.ndarray, depth_hm: np.ndarray, primitives: Sequence[str]) -> PolicyMaps:
+    def infer(self, color_hm: np.ndarray, depth_hm: np.ndarray, primitives: Sequence[str],
+              exact: bool = False) -> PolicyMaps:
         """Q and angle maps of the named nets only, for one heightmap pair."""
-        return _to_maps(self.forward(preprocess(color_hm, depth_hm), primitives))
+        return _to_maps(self.forward(preprocess(color_hm, depth_hm), primitives, exact))
+
+    def near_tie(self, chosen: Mapping[str, np.ndarray], raw: Mapping[str, np.ndarray]) -> bool:
+        """Whether the best two Q values of the maps a choice is made from (masked) are closer than this
+        engine's numerics can order: tie_fraction of the spread (std) of the unmasked maps."""
+        if self.tie_fraction <= 0.0:
+            return False
+        tolerance = self.tie_fraction * float(np.concatenate([q.ravel() for q in raw.values()]).std())
+        flat = np.concatenate([q.ravel() for q in chosen.values()])
+        if flat.size < 2:
+            return False
+        second, best = np.partition(flat, flat.size - 2)[-2:]
+        return bool(best - second < tolerance)  # False for NaN: select_action rejects those maps
 
 
 def _to_maps(outputs: Mapping[str, Tensor]) -> PolicyMaps:
@@ -194,19 +270,27 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     decision's. Returns the Action, or (Action, PolicyMaps) when return_maps is True.
     """
     nets = nets_to_run(holding, primitives)
-    if isinstance(model, InferenceEngine):
-        maps = model.infer(color_hm, depth_hm, nets)
-    else:
-        maps = reference_maps(model, color_hm, depth_hm, nets)
+    engine = model if isinstance(model, InferenceEngine) else None
     masks = None
     if exploration_cfg.action_mask:  # masked pixels sink below every valid Q (V = max Q sees them too)
         masks = action_masks(depth_hm, nets, exploration_cfg)
-        maps = PolicyMaps({p: masked_q(q, masks[p]) for p, q in maps.q.items()}, maps.angle)
-    chosen_from, chosen_masks = maps.q, masks
     avoided = None if avoid is None else avoid.masks(nets, depth_hm.shape)
-    if avoided is not None:
-        chosen_masks = join_masks(masks, avoided)
-        chosen_from = {p: masked_q(q, chosen_masks[p]) for p, q in maps.q.items()}
+    chosen_masks = masks if avoided is None else join_masks(masks, avoided)
+
+    def masked(raw: PolicyMaps) -> tuple[PolicyMaps, dict[str, np.ndarray]]:
+        shown = raw if masks is None else PolicyMaps({p: masked_q(q, masks[p]) for p, q in raw.q.items()},
+                                                     raw.angle)
+        chosen = shown.q if avoided is None else {p: masked_q(q, chosen_masks[p]) for p, q in shown.q.items()}
+        return shown, chosen
+
+    if engine is None:
+        maps, chosen_from = masked(reference_maps(model, color_hm, depth_hm, nets))
+    else:
+        raw = engine.infer(color_hm, depth_hm, nets)
+        maps, chosen_from = masked(raw)
+        if engine.near_tie(chosen_from, raw.q):  # int8 cannot order the best two pixels: the fp32 nets decide
+            engine.exact_reruns += 1
+            maps, chosen_from = masked(engine.infer(color_hm, depth_hm, nets, exact=True))
     action = select_action(chosen_from, maps.angle, explore_rate, exploration_cfg, rng, chosen_masks)
     action = snap_to_bin(action, model.cfg.angle_bins)
     return (action, maps) if return_maps else action

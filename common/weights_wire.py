@@ -18,7 +18,7 @@ from collections.abc import Mapping
 
 import torch
 
-from .policy import resolve_precision
+from .policy import resolve_inference_precision
 
 WIRE_DTYPES = ("fp32", "bf16")
 # A net's first convolution: the bf16 engine keeps it at ~16 mantissa bits (hi + lo halves).
@@ -48,8 +48,11 @@ def from_wire(tensors: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 def resolve_wire_dtype(wire_dtype: str, model_precision: str) -> str:
     """learner.weights_wire_dtype as "fp32" or "bf16": "auto" is bf16 where model.precision resolves to bf16
-    on this machine (the learner's; on one machine, the actors' too)."""
+    on this machine (the learner's; on one machine, the actors' too). int8 actors quantise fp32 weights (precision
+    "int8": fp32)."""
     if wire_dtype != "auto":
         to_wire({}, wire_dtype)  # raises ValueError on an unknown dtype
         return wire_dtype
-    return "bf16" if resolve_precision(model_precision) == "bf16" else "fp32"
+    if model_precision == "int8":  # resolved on the actors, which may have oneDNN's int8 ops where we do not
+        return "fp32"
+    return "bf16" if resolve_inference_precision(model_precision) == "bf16" else "fp32"
