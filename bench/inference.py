@@ -10,6 +10,10 @@
   input (affine_grid / grid_sample, nearest, as in their code), outputs rotated back, then an argmax.
 * decision_agreement: share of identical (primitive, row, col) choices between the fast path and the fp32
   reference on seeded synthetic heightmaps with blocks (random-init weights with a fixed seed).
+* precisions: the same decision with every precision this machine runs (fp32, bf16, int8): latency, ratio to
+  the naive pass and to the 16 rotations, agreement, mean latency over the agreement inputs, the cost of
+  load_state, and for int8 the share of decisions rerun in fp32 as near ties and the agreement without them.
+  The top-level decision fields are the precision "auto" picks here.
 
 Timings interleave the measurements repeat by repeat, so the ratios compare the same machine state
 (a shared machine drifts from minute to minute); medians are reported, minima beside them.
@@ -22,6 +26,7 @@ import datetime
 import json
 import logging
 import math
+import os
 import platform
 import statistics
 import sys
@@ -34,20 +39,26 @@ import torch
 import torch.nn.functional as F
 
 from romannet.common.config import ExplorationConfig, ModelConfig
-from romannet.common.model import RoManNet, parameter_count, preprocess
+from romannet.common.int8net import Int8Net, int8_ops_available
+from romannet.common.model import RoManNet, parameter_count, preprocess, state_dict_to_tensors
 from romannet.common.policy import (
+    INFERENCE_PRECISIONS,
     FastNet,
     InferenceEngine,
     cpu_bf16_flags,
     decide,
     fused_ops_available,
+    native_bf16,
     nets_to_run,
+    resolve_inference_precision,
 )
 from romannet.info import cpu_model
 
 logger = logging.getLogger(__name__)
 
 SIZE_PX = 224
+# What limits the instruction sets of oneDNN, ATen and FBGEMM (to emulate an older CPU); recorded when set.
+ISA_LIMIT_VARIABLES = ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY", "FBGEMM_ENABLE_INSTRUCTIONS")
 ROTATED_SIZE_PX = 320  # the authors pad the 224 heightmap so that every rotation of it fits
 NUM_ROTATIONS = 16
 
@@ -143,6 +154,9 @@ def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[st
                 unsupported[name] = _first_line(err)
                 continue
             variants[name] = lambda fast=fast: [f(x) for f in fast]
+    if int8_ops_available():  # the int8 trunk, fp32 first conv, transposed convs and folded heads
+        int8 = [Int8Net(n, fused_ops_available()) for n in nets]
+        variants["int8_trunk_fused_prepacked"] = lambda: [f(x) for f in int8]
     if engine.parallel_nets:
         variants[f"engine_{engine.precision}_parallel_nets"] = lambda: engine.forward(x, ("push", "pick"))
     with torch.inference_mode():
@@ -162,15 +176,84 @@ def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[st
     return result
 
 
+def _precision_engines(model: RoManNet, cfg: ModelConfig) -> tuple[dict[str, InferenceEngine], dict[str, str]]:
+    """An engine per precision this machine can run ({precision: engine}), and why the others are left out."""
+    engines, left_out = {}, {}
+    for precision in INFERENCE_PRECISIONS:
+        if precision == "int8" and not int8_ops_available():
+            left_out[precision] = "no oneDNN int8 convolutions in this PyTorch build or CPU"
+            continue
+        try:
+            engine = InferenceEngine(model, replace(cfg, precision=precision))
+            engine.forward(torch.zeros(1, 4, 32, 32), ("push",))  # oneDNN's bf16 kernels raise on AVX2-only CPUs
+        except (RuntimeError, ValueError) as err:
+            left_out[precision] = _first_line(err)
+        else:
+            engines[precision] = engine
+    return engines, left_out
+
+
+def _load_state_ms(engine: InferenceEngine, x: torch.Tensor, repeats: int = 3) -> tuple[float, float]:
+    """Median ms of load_state (fold, quantise) and of the first forward after it (prepacks) minus a second."""
+    tensors = state_dict_to_tensors(engine.model)
+    loads, firsts = [], []
+    for _ in range(repeats):
+        loads.append(_time_ms(lambda: engine.load_state(tensors)))
+        first = _time_ms(lambda: engine.forward(x, ("push", "pick")))
+        firsts.append(first - _time_ms(lambda: engine.forward(x, ("push", "pick"))))
+    return round(statistics.median(loads), 1), round(statistics.median(firsts), 1)
+
+
+def _agreement(engines: dict[str, InferenceEngine], model: RoManNet, scenes: list, rng: np.random.Generator,
+               primitives: tuple[str, ...], exploration: ExplorationConfig) -> dict[str, dict]:
+    """Per precision: share of the fp32 reference's (primitive, row, col) choices made, mean decision ms over
+    these inputs, and for an engine that reruns near ties the share rerun and the agreement without reruns."""
+    hits = {p: 0 for p in engines}
+    alone = {p: 0 for p in engines if engines[p].tie_fraction > 0}
+    times: dict[str, list[float]] = {p: [] for p in engines}
+    reruns = {p: e.exact_reruns for p, e in engines.items()}
+
+    def choice(a: object) -> tuple:
+        return a.primitive, a.row, a.col  # type: ignore[attr-defined]
+
+    for color, depth in scenes:
+        ref = choice(decide(model, color, depth, False, 0.0, rng, primitives, exploration))
+        for precision, engine in engines.items():
+            t0 = time.perf_counter()
+            hits[precision] += choice(decide(engine, color, depth, False, 0.0, rng, primitives, exploration)) == ref
+            times[precision].append((time.perf_counter() - t0) * 1e3)
+            if precision in alone:
+                fraction, engine.tie_fraction = engine.tie_fraction, 0.0
+                try:
+                    alone[precision] += choice(decide(engine, color, depth, False, 0.0, rng, primitives,
+                                                      exploration)) == ref
+                finally:
+                    engine.tie_fraction = fraction
+    n = len(scenes)
+    result = {p: {"agreement": round(hits[p] / n, 4), "decision_mean_ms": round(statistics.fmean(times[p]), 2)}
+              for p in engines}
+    for p in alone:
+        result[p].update(agreement_without_reruns=round(alone[p] / n, 4),
+                         near_tie_reruns=round((engines[p].exact_reruns - reruns[p]) / n, 4))
+    return result
+
+
 def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: int = 100,
                             rotation_repeats: int = 1, ablation: bool = True) -> dict:
-    """Measure the decision path against the naive and rotation baselines; returns one JSON-able dict."""
+    """Measure the decision path against the naive and rotation baselines; returns one JSON-able dict.
+
+    The top-level decision fields are the engine that precision "auto" gives on this machine; `precisions`
+    has every precision this machine runs, timed in the same rounds (bf16 where it is not native: a few
+    rounds and no agreement, as it is ~12x slower than fp32 there)."""
     if repeats < 1 or agreement_inputs < 1 or rotation_repeats < 1:
         raise ValueError("repeats, agreement_inputs and rotation_repeats must be >= 1")
     started = time.perf_counter()
     cfg = ModelConfig()
     model = RoManNet(cfg, seed=seed).eval()
-    engine = InferenceEngine(model, cfg)
+    engines, left_out = _precision_engines(model, cfg)
+    auto = resolve_inference_precision(cfg.precision)
+    engine = engines[auto]
+    slow = {p for p in engines if p == "bf16" and not native_bf16()}
     exploration = ExplorationConfig()
     primitives = ("push", "pick")
     scene_rng = np.random.default_rng(seed)
@@ -178,8 +261,8 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
     x = preprocess(color, depth)
     rng = np.random.default_rng(seed)
 
-    def decision() -> object:
-        return decide(engine, color, depth, False, 0.0, rng, primitives, exploration)
+    def decision_by(e: InferenceEngine) -> Callable[[], object]:
+        return lambda: decide(e, color, depth, False, 0.0, rng, primitives, exploration)
 
     def decision_exploring() -> object:
         return decide(engine, color, depth, False, 1.0, rng, primitives, exploration)
@@ -188,34 +271,44 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
     cfg2 = replace(cfg, rotation_harmonics=2)
     engine2 = InferenceEngine(RoManNet(cfg2, seed=seed).eval(), cfg2)
 
-    def decision_harmonics2() -> object:
-        return decide(engine2, color, depth, False, 0.0, rng, primitives, exploration)
-
     def naive() -> None:
         with torch.inference_mode():
             for net in model.nets.values():
                 net(x)
 
-    for fn in (decision, decision_exploring, decision_harmonics2, naive):
+    timed: dict[str, Callable[[], object]] = {"naive": naive, "explore": decision_exploring,
+                                              "harmonics2": decision_by(engine2)}
+    timed.update((f"decision_{p}", decision_by(e)) for p, e in engines.items() if p not in slow)
+    for fn in timed.values():
         fn()  # warm-up
-    samples: dict[str, list[float]] = {"decision": [], "explore": [], "harmonics2": [], "naive": []}
+    samples: dict[str, list[float]] = {k: [] for k in timed}
     for _ in range(repeats):
-        samples["naive"].append(_time_ms(naive))
-        samples["decision"].append(_time_ms(decision))
-        samples["explore"].append(_time_ms(decision_exploring))
-        samples["harmonics2"].append(_time_ms(decision_harmonics2))
+        for name, fn in timed.items():
+            samples[name].append(_time_ms(fn))
+    for p in slow:  # emulated bf16: a few rounds of its own, beside the naive pass
+        fn = decision_by(engines[p])
+        fn()
+        for _ in range(min(3, repeats)):
+            samples["naive"].append(_time_ms(naive))
+            samples.setdefault(f"decision_{p}", []).append(_time_ms(fn))
     rotation_samples = [_time_ms(lambda: rotations16_decision(model, color, depth)) for _ in range(rotation_repeats)]
 
-    agree = 0
-    for _ in range(agreement_inputs):
-        c, d = synthetic_scene(scene_rng)
-        fast = decide(engine, c, d, False, 0.0, rng, primitives, exploration)
-        ref = decide(model, c, d, False, 0.0, rng, primitives, exploration)
-        agree += (fast.primitive, fast.row, fast.col) == (ref.primitive, ref.row, ref.col)
+    scenes = [synthetic_scene(scene_rng) for _ in range(agreement_inputs)]
+    agreement = _agreement({p: e for p, e in engines.items() if p not in slow}, model, scenes, rng, primitives,
+                           exploration)
 
-    decision_ms, decision_min = _summary(samples["decision"])
     naive_ms, naive_min = _summary(samples["naive"])
     rotations_ms = round(statistics.median(rotation_samples), 1)
+    precisions: dict[str, dict] = {}
+    for p, e in engines.items():
+        ms, min_ms = _summary(samples[f"decision_{p}"])
+        load_ms, first_ms = _load_state_ms(e, x)
+        precisions[p] = {"decision_ms": ms, "decision_min_ms": min_ms, "decision_vs_naive": round(ms / naive_ms, 4),
+                         "rotations16_vs_decision": round(rotations_ms / ms, 1), "load_state_ms": load_ms,
+                         "first_forward_after_load_extra_ms": first_ms, "emulated": p in slow,
+                         **agreement.get(p, {"agreement": None})}
+    precisions.update((p, {"left_out": why}) for p, why in left_out.items())
+    decision_ms, decision_min = precisions[auto]["decision_ms"], precisions[auto]["decision_min_ms"]
     result = {
         "decision_ms": decision_ms,
         "decision_min_ms": decision_min,
@@ -227,8 +320,9 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
         "rotations16_ms": rotations_ms,
         "decision_vs_naive": round(decision_ms / naive_ms, 4),
         "rotations16_vs_decision": round(rotations_ms / decision_ms, 1),
-        "decision_agreement": round(agree / agreement_inputs, 4),
+        "decision_agreement": precisions[auto]["agreement"],
         "agreement_inputs": agreement_inputs,
+        "precisions": precisions,
         "nets_in_decision": list(nets_to_run(False, primitives)),
         "parameters_per_net": {name: parameter_count(net) for name, net in model.nets.items()},
         "precision": engine.precision,
@@ -237,6 +331,9 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
         "channels_last": True,
         "torch_compile": False,
         "cpu_bf16_flags": list(cpu_bf16_flags()),
+        "native_bf16": native_bf16(),
+        "int8_ops": int8_ops_available(),
+        "isa_limits": {k: v for k in ISA_LIMIT_VARIABLES if (v := os.environ.get(k))},
         "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
@@ -248,6 +345,8 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
     }
     if ablation:
         result["forward_push_pick_ms"] = _ablation(engine, x, max(3, repeats // 6))
+    for e in (*engines.values(), engine2):
+        e.close()
     result["benchmark_s"] = round(time.perf_counter() - started, 1)
     return result
 
