@@ -59,10 +59,9 @@ def act_qparams(lo: float, hi: float) -> QParams:
 
 
 def quantize_u8(x: Tensor, q: QParams) -> Tensor:
-    """fp32 → uint8 at q (round to nearest, saturating), keeping x's memory format."""
-    y = x.mul(1.0 / q.scale)
-    y.round_().add_(q.zero_point).clamp_(0, 255)
-    return y.to(torch.uint8)
+    """fp32 → uint8 at q (round half up, saturating) in three passes, keeping x's memory format."""
+    offset = torch.tensor(q.zero_point + 0.5)  # + 0.5, then truncation: rounds the clamped values
+    return torch.add(offset, x, alpha=1.0 / q.scale).clamp_(0.0, 255.0).to(torch.uint8)
 
 
 def quantize_weight(weight: Tensor) -> tuple[Tensor, Tensor]:
@@ -107,9 +106,11 @@ class _NonFinite(ValueError):
     """An activation held NaN or infinity: the weights are unusable, and the fp32 net says so in its Q maps."""
 
 
-def quantize_dynamic(x: Tensor) -> tuple[Tensor, QParams]:
-    """x as uint8 at the scale and zero point of its own range (one reduction, one pass)."""
-    lo, hi = (float(v) for v in torch.aminmax(x))
+def quantize_dynamic(x: Tensor, signed: bool = True) -> tuple[Tensor, QParams]:
+    """x as uint8 at the scale and zero point of its own range; signed False: x >= 0 (a ReLU's output).
+    (amax and amin, not aminmax: ~10x faster on channels_last tensors.)"""
+    hi = float(x.amax())
+    lo = float(x.amin()) if signed else 0.0
     if not (math.isfinite(lo) and math.isfinite(hi)):
         raise _NonFinite
     q = act_qparams(lo, hi)
@@ -155,11 +156,11 @@ class Int8Net:
         its own range, so no scale is calibrated and new weights cost only their quantisation."""
         f = self.exact
         x = f.layers[0](x.contiguous(memory_format=torch.channels_last))
-        x = self.conv2(*quantize_dynamic(x), relu=True)
-        x = self.conv3(*quantize_dynamic(x), relu=True)  # the residual stream, fp32
+        x = self.conv2(*quantize_dynamic(x, signed=False), relu=True)
+        x = self.conv3(*quantize_dynamic(x, signed=False), relu=True)  # the residual stream, fp32
         for first, second in self.res:
             y = first(*quantize_dynamic(x), relu=True)
-            x = second(*quantize_dynamic(y), add_to=x)
+            x = second(*quantize_dynamic(y, signed=False), add_to=x)
         for layer in f.up:
             x = layer(x)
         return x
