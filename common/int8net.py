@@ -14,7 +14,7 @@ What runs in int8, what stays fp32, and why (measured in docs/benchmarks.md, "in
   exact): 3 output channels instead of 32 make the largest layer ~4x cheaper.
 
 int8 is not exact: a decision whose best two pixels it cannot order is rerun with `exact`, the fp32 FastNet
-(common/policy.py, `InferenceEngine.near_tie`).
+(common/policy.py, `InferenceEngine.near_ties`).
 """
 
 from __future__ import annotations

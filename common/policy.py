@@ -139,8 +139,8 @@ def resolve_inference_precision(precision: str) -> str:
 class InferenceEngine:
     """The actor's fast path around a RoManNet: eval mode, inference mode, folded/prepacked nets.
 
-    With precision int8, decide() reruns a decision whose best two pixels int8 cannot order (`near_tie`) with
-    the exact fp32 nets; `exact_reruns` counts them.
+    With precision int8, decide() reruns a decision whose best two pixels int8 cannot order (`near_ties`)
+    with the exact fp32 form of the nets they lie in; `exact_reruns` counts such decisions.
 
     With two or more threads, nets that run in the same decision (PushNet and PickNet) run concurrently,
     each on its own share of the threads, instead of one after another on all of them: as fast on an idle
@@ -218,17 +218,20 @@ class InferenceEngine:
         """Q and angle maps of the named nets only, for one heightmap pair."""
         return _to_maps(self.forward(preprocess(color_hm, depth_hm), primitives, exact))
 
-    def near_tie(self, chosen: Mapping[str, np.ndarray], raw: Mapping[str, np.ndarray]) -> bool:
-        """Whether the best two Q values of the maps a choice is made from (masked) are closer than this
-        engine's numerics can order: tie_fraction of the spread (std) of the unmasked maps."""
+    def near_ties(self, chosen: Mapping[str, np.ndarray], raw: Mapping[str, np.ndarray]) -> tuple[str, ...]:
+        """The nets to rerun exactly, none unless the best two Q values of the maps a choice is made from
+        (masked) are closer than this engine's numerics can order (tie_fraction of the unmasked maps' std):
+        then every net whose best value is that close to the best."""
         if self.tie_fraction <= 0.0:
-            return False
+            return ()
         tolerance = self.tie_fraction * float(np.concatenate([q.ravel() for q in raw.values()]).std())
         flat = np.concatenate([q.ravel() for q in chosen.values()])
         if flat.size < 2:
-            return False
+            return ()
         second, best = np.partition(flat, flat.size - 2)[-2:]
-        return bool(best - second < tolerance)  # False for NaN: select_action rejects those maps
+        if not best - second < tolerance:  # also for NaN: select_action rejects those maps
+            return ()
+        return tuple(p for p, q in chosen.items() if q.size and q.max() >= best - tolerance)
 
 
 def _to_maps(outputs: Mapping[str, Tensor]) -> PolicyMaps:
@@ -288,9 +291,11 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     else:
         raw = engine.infer(color_hm, depth_hm, nets)
         maps, chosen_from = masked(raw)
-        if engine.near_tie(chosen_from, raw.q):  # int8 cannot order the best two pixels: the fp32 nets decide
+        rerun = engine.near_ties(chosen_from, raw.q)
+        if rerun:  # int8 cannot order the best two pixels: the fp32 nets they lie in decide
             engine.exact_reruns += 1
-            maps, chosen_from = masked(engine.infer(color_hm, depth_hm, nets, exact=True))
+            exact = engine.infer(color_hm, depth_hm, rerun, exact=True)
+            maps, chosen_from = masked(PolicyMaps({**raw.q, **exact.q}, {**raw.angle, **exact.angle}))
     action = select_action(chosen_from, maps.angle, explore_rate, exploration_cfg, rng, chosen_masks)
     action = snap_to_bin(action, model.cfg.angle_bins)
     return (action, maps) if return_maps else action

@@ -95,15 +95,18 @@ def test_near_ties_are_rerun_with_the_exact_nets(scenes, monkeypatch):
                 np.testing.assert_allclose(maps.q[p], ref.q[p], atol=2e-5)
         assert eng.exact_reruns == 3
         a = np.array([[1.0, 0.0], [0.5, 0.2]], np.float32)
+        low = a - 0.5
         eng.tie_fraction = 0.01
-        assert not eng.near_tie({"pick": a}, {"pick": a})
+        assert eng.near_ties({"push": low, "pick": a}, {"push": low, "pick": a}) == ()
         close = a.copy()
         close[1, 1] = 1.0 - 1e-6
-        assert eng.near_tie({"pick": close}, {"pick": close})
+        assert eng.near_ties({"push": low, "pick": close}, {"push": low, "pick": close}) == ("pick",)
+        tied = low + 0.5 - 1e-6  # the runner-up in the other net: both rerun
+        assert eng.near_ties({"push": tied, "pick": a}, {"push": tied, "pick": a}) == ("push", "pick")
         # the tolerance comes from the unmasked maps: a masked map's sunk pixels do not widen it
         masked = close.copy()
         masked[0, 1] = -1e9
-        assert eng.near_tie({"pick": masked}, {"pick": close})
+        assert eng.near_ties({"pick": masked}, {"pick": close}) == ("pick",)
     finally:
         eng.close()
 
