@@ -122,8 +122,7 @@ def resolve_precision(precision: str) -> str:
 def resolve_inference_precision(precision: str) -> str:
     """model.precision for the actor's decisions: "fp32", "bf16" or "int8"."""
     if precision == "auto":
-        # bf16 where native; else int8 on AVX2+ (0.25x naive vs fp32's 0.42x there, same argmax); else fp32.
-        return "bf16" if native_bf16() else "int8" if int8_wins() else "fp32"
+        return "bf16" if native_bf16() else "fp32"
     if precision == "int8":
         if not int8_ops_available():
             raise ValueError("precision 'int8' needs oneDNN's int8 convolutions (torch.ops.onednn.qconv2d_pointwise"

@@ -175,26 +175,6 @@ def test_int8_heads_match_the_reference(cfg, scenes):
         eng.close()
 
 
-def test_precision_auto_picks_bf16_then_int8_then_fp32(monkeypatch):
-    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
-    monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
-    monkeypatch.setattr(policy.torch.backends.mkldnn, "is_available", lambda: True)
-    monkeypatch.setattr(policy, "int8_ops_available", lambda: True)
-    monkeypatch.setattr(policy, "cpu_flags", lambda: frozenset({"avx2", "avx512_bf16", "amx_bf16"}))
-    assert resolve_inference_precision("auto") == "bf16"
-    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx2")  # oneDNN limited to AVX2: no native bf16 there
-    assert resolve_inference_precision("auto") == "int8"
-    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA")
-    monkeypatch.setattr(policy, "cpu_flags", lambda: frozenset({"avx2", "fma"}))
-    assert resolve_inference_precision("auto") == "int8"
-    assert policy.resolve_precision("auto") == "fp32"  # the learner trains in fp32 there
-    monkeypatch.setattr(policy, "cpu_flags", lambda: frozenset({"sse4_2"}))
-    assert resolve_inference_precision("auto") == "fp32"
-    monkeypatch.setattr(policy, "cpu_flags", lambda: frozenset({"avx2"}))
-    monkeypatch.setattr(policy, "int8_ops_available", lambda: False)  # e.g. an aarch64 build
-    assert resolve_inference_precision("auto") == "fp32"
-
-
 def test_int8_precision_needs_the_int8_ops(monkeypatch):
     monkeypatch.setattr(policy, "int8_ops_available", lambda: False)  # e.g. an aarch64 build
     with pytest.raises(ValueError, match="int8"):
