@@ -43,7 +43,8 @@ logger = logging.getLogger(__name__)
 BF16_CPU_FLAGS = ("avx512_bf16", "amx_bf16")
 INFERENCE_PRECISIONS = ("fp32", "bf16", "int8")
 # int8's error at a map's worst pixel, as a share of the maps' std: median 0.007 with AVX2 kernels, 0.003 with
-# VNNI/AMX (docs/benchmarks.md). A decision whose best two pixels are closer than this share is rerun in fp32.
+# VNNI/AMX, on random-init nets (on trained ones 0.05-0.4: why "auto" does not pick int8, docs/benchmarks.md).
+# A decision whose best two pixels are closer than this share is rerun in fp32.
 INT8_TIE_FRACTION = 0.01
 # oneDNN ISA limits (ONEDNN_MAX_CPU_ISA) under which it has no native bf16, or not even AVX2.
 ONEDNN_ISAS_WITHOUT_AVX2 = ("SSE41", "AVX")
@@ -122,6 +123,7 @@ def resolve_precision(precision: str) -> str:
 def resolve_inference_precision(precision: str) -> str:
     """model.precision for the actor's decisions: "fp32", "bf16" or "int8"."""
     if precision == "auto":
+        # bf16 where native; never int8: it keeps random-init nets' argmax but not trained ones' (benchmarks.md)
         return "bf16" if native_bf16() else "fp32"
     if precision == "int8":
         if not int8_ops_available():

@@ -175,6 +175,23 @@ def test_int8_heads_match_the_reference(cfg, scenes):
         eng.close()
 
 
+def test_precision_auto_is_bf16_where_native_and_never_int8(monkeypatch):
+    """int8 keeps the benchmark's random-init decisions but not a trained model's (docs/benchmarks.md), so
+    "auto" does not pick it even where it is faster."""
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
+    monkeypatch.setattr(policy.torch.backends.mkldnn, "is_available", lambda: True)
+    monkeypatch.setattr(policy, "int8_ops_available", lambda: True)
+    monkeypatch.setattr(policy, "cpu_flags", lambda: frozenset({"avx2", "avx512_bf16", "amx_bf16"}))
+    assert resolve_inference_precision("auto") == "bf16"
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx2")  # oneDNN limited to AVX2: no native bf16 there
+    assert not policy.native_bf16() and policy.int8_wins()
+    assert resolve_inference_precision("auto") == "fp32"
+    assert resolve_inference_precision("int8") == "int8"
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx")
+    assert not policy.int8_wins()
+
+
 def test_int8_precision_needs_the_int8_ops(monkeypatch):
     monkeypatch.setattr(policy, "int8_ops_available", lambda: False)  # e.g. an aarch64 build
     with pytest.raises(ValueError, match="int8"):
