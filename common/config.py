@@ -33,6 +33,7 @@ RETIRED: dict[str, Any] = {
     "learner.train_rotation_on_success_only": True,
     "replay.group_commit": True,
     "learner.augment_rotation": False,
+    "model.angle_bins": 0,
 }
 
 
@@ -129,9 +130,6 @@ class ModelConfig:
     # second harmonic (cos 2k theta, sin 2k theta), which stays trainable when two grasps 90 degrees apart are
     # both right (a cube: the first harmonic's targets cancel there; see common/model.py).
     rotation_harmonics: int = 1
-    # Pick and place angle: 0 = the rotation head above (the paper's); K = one Q map per gripper yaw j pi / K
-    # and no rotation head for those nets, chosen by argmax like VPG's rotations (common/model.py says why).
-    angle_bins: int = 0
     # Initial Q head: "default" = PyTorch's init (Q maps start with peaks of about +-2 that the greedy argmax
     # finds, while returns lie in [0, 2] and the support losses train them down only where an action was
     # tried); "small" = that init times 0.01, so every Q map starts within a few hundredths of 0, below any
@@ -148,8 +146,6 @@ class ModelConfig:
         require(0 <= self.residual_blocks <= 20, "model.residual_blocks", self.residual_blocks, "must be 0..20")
         require(self.rotation_harmonics in (1, 2), "model.rotation_harmonics", self.rotation_harmonics,
                 "must be 1 (cos/sin of the angle) or 2 (also its second harmonic)")
-        require(self.angle_bins == 0 or 2 <= self.angle_bins <= 64, "model.angle_bins", self.angle_bins,
-                "must be 0 (a rotation head) or 2..64 (one Q map per pick/place yaw bin over 180 degrees)")
         require(self.q_head_init in ("default", "small"), "model.q_head_init", self.q_head_init,
                 "must be 'default' (PyTorch's init) or 'small' (that init times 0.01: Q maps start near 0)")
         require(self.num_threads >= 0, "model.num_threads", self.num_threads, "must be >= 0 (0 = torch default)")

@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -34,16 +34,7 @@ from .action_mask import action_masks, masked_q
 from .config import ExplorationConfig, ModelConfig
 from .exploration import select_action
 from .failure_memory import FailureMemory, join_masks
-from .model import (
-    SYMMETRIC_PRIMITIVES,
-    GRConvNet,
-    RoManNet,
-    angle_bin,
-    bin_angles,
-    decode_rotation,
-    load_tensors,
-    preprocess,
-)
+from .model import GRConvNet, RoManNet, decode_rotation, load_tensors, preprocess
 
 logger = logging.getLogger(__name__)
 
@@ -182,12 +173,10 @@ class FastNet:
             self.up = [_Layer(*_fold(net.deconv1, net.bn4, True, dtype), dtype, 2, 1, True, fused),
                        _Layer(*_fold(net.deconv2, net.bn5, True, dtype), dtype, 2, 1, True, fused)]
             self.conv6 = _Layer(net.conv6.weight, net.conv6.bias, dtype, 1, 4, False, fused)
-            heads = [net.q_head] if net.rot_head is None else [net.q_head, net.rot_head]
-            heads_w = torch.cat([h.weight for h in heads], 0)[:, :, 0, 0]
-            self.heads_w = heads_w.detach().float().t().contiguous()  # (C, 1 + rotation channels) or (C, K)
-            self.heads_b = torch.cat([h.bias for h in heads]).detach().float()
+            heads_w = torch.cat([net.q_head.weight, net.rot_head.weight], 0)[:, :, 0, 0]
+            self.heads_w = heads_w.detach().float().t().contiguous()  # (C, 1 + rotation channels)
+            self.heads_b = torch.cat([net.q_head.bias, net.rot_head.bias]).detach().float()
             self.outputs = int(self.heads_b.numel())
-            self.bin_rotation = net.bin_rotation.float() if net.rot_head is None else None
 
     def __call__(self, x: Tensor) -> Tensor:
         if self.low_precision:
@@ -203,11 +192,7 @@ class FastNet:
         x = self.conv6(x, relu=False)
         b, c, h, w = x.shape
         rows = x.permute(0, 2, 3, 1).reshape(-1, c).float()  # a view for channels_last
-        out = torch.addmm(self.heads_b, rows, self.heads_w).view(b, h, w, self.outputs)
-        if self.bin_rotation is None:
-            return out
-        q, best = out.max(dim=-1)  # angle bins: the best bin's Q and its angle's (cos 2θ, sin 2θ), as GRConvNet
-        return torch.cat([q[..., None], self.bin_rotation[best]], dim=-1)
+        return torch.addmm(self.heads_b, rows, self.heads_w).view(b, h, w, self.outputs)
 
 
 class InferenceEngine:
@@ -334,13 +319,4 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
         chosen_masks = join_masks(masks, avoided)
         chosen_from = {p: masked_q(q, chosen_masks[p]) for p, q in maps.q.items()}
     action = select_action(chosen_from, maps.angle, explore_rate, exploration_cfg, rng, chosen_masks)
-    action = snap_to_bin(action, model.cfg.angle_bins)
     return (action, maps) if return_maps else action
-
-
-def snap_to_bin(action: Action, bins: int) -> Action:
-    """A pick or place of an angle-binned net at its bin's yaw, so an explored random angle is executed as the
-    bin the learner will credit with its outcome (unchanged without bins or for a push)."""
-    if not bins or action.primitive not in SYMMETRIC_PRIMITIVES:
-        return action
-    return replace(action, angle_rad=float(bin_angles(bins)[angle_bin(action.angle_rad, bins)]))

@@ -226,9 +226,7 @@ PACKAGE_FORMAT = 1
 FP32_IN_PACKAGE = ("running_mean", "running_var")
 # The fields that make the same weights the same function: precision, channels_last and num_threads say how
 # a process computes it, q_head_init only how a fresh net starts, so a run may differ from its source there.
-ARCHITECTURE_FIELDS = ("channels", "residual_blocks", "rotation_harmonics", "angle_bins")
-# What a saved config written before a field existed was trained with.
-ARCHITECTURE_BEFORE_FIELD = {"angle_bins": 0}
+ARCHITECTURE_FIELDS = ("channels", "residual_blocks", "rotation_harmonics")
 
 
 def to_package_dtypes(tensors: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -259,7 +257,7 @@ def is_model_package(path: str | Path) -> bool:
 def architecture(model: ModelConfig | Mapping[str, Any]) -> dict[str, Any]:
     """The ARCHITECTURE_FIELDS of a model config (a dataclass or its saved dict)."""
     data = dataclasses.asdict(model) if isinstance(model, ModelConfig) else dict(model)
-    return {k: data.get(k, ARCHITECTURE_BEFORE_FIELD.get(k)) for k in ARCHITECTURE_FIELDS}
+    return {k: data.get(k) for k in ARCHITECTURE_FIELDS}
 
 
 def _load_safetensors(path: Path) -> dict[str, torch.Tensor]:
