@@ -17,7 +17,7 @@ from .configbase import require
 
 def inserts_before_first_sample(replay: ReplayConfig) -> float:
     """How many transitions the limiter admits before anything has been sampled (inf without a ratio)."""
-    spi = replay.samples_per_insert
+    spi = replay.spi_limit
     if spi is None:
         return math.inf
     return replay.min_size_to_sample + math.floor(replay.spi_tolerance / spi + 1e-9)
@@ -34,7 +34,7 @@ def check_pacing(replay: ReplayConfig, learner: LearnerConfig) -> None:
     require(learner.batch_size <= replay.max_batch_size, "learner.batch_size", learner.batch_size,
             f"must be <= replay.max_batch_size ({replay.max_batch_size}), the largest batch the replay server "
             "serves")
-    spi = replay.samples_per_insert
+    spi = replay.spi_limit
     if spi is None:
         return
     admitted = inserts_before_first_sample(replay)

@@ -14,7 +14,7 @@ from romannet.replay.ratelimiter import RateLimiter
 
 
 def _limiter(replay: ReplayConfig) -> RateLimiter:
-    return RateLimiter(replay.min_size_to_sample, replay.samples_per_insert, replay.spi_tolerance)
+    return RateLimiter(replay.min_size_to_sample, replay.spi_limit, replay.spi_tolerance)
 
 
 def _try(acquire) -> bool:  # type: ignore[no-untyped-def]
@@ -38,7 +38,15 @@ def test_inserts_before_first_sample_is_what_the_limiter_admits(min_size: int, s
 
 
 def test_without_a_ratio_every_insert_is_admitted() -> None:
-    assert inserts_before_first_sample(ReplayConfig()) == float("inf")
+    assert inserts_before_first_sample(ReplayConfig(samples_per_insert=0.0)) == float("inf")
+
+
+def test_samples_per_insert_0_is_no_ratio_limit_and_a_recipe_can_say_so() -> None:
+    cfg = load_config(overrides=["replay.samples_per_insert=0"])
+    assert cfg.replay.samples_per_insert == 0.0 and cfg.replay.spi_limit is None
+    limiter = _limiter(cfg.replay)
+    for _ in range(cfg.replay.min_size_to_sample + 1000):
+        limiter.acquire_insert(0.0)
 
 
 def _run_fleet(replay: ReplayConfig, learner: LearnerConfig, inserts_wanted: int) -> int:
