@@ -45,7 +45,7 @@ def _flag_overrides(args: argparse.Namespace) -> list[str]:
 
 def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
     """Validate the arguments, create the run directory and write its config.toml (before any child)."""
-    from romannet.common.config import load_config
+    from romannet.common.config import load_config, load_saved_config
     from romannet.common.configbase import write_toml
 
     name = args.name or time.strftime("run-%Y%m%d-%H%M%S")
@@ -75,8 +75,8 @@ def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
         _check_replay_free(run_dir)
         _check_actor_states(run_dir, args.actors)
         _warn_left_spools(run_dir, args.actors)
-        before = load_config(saved)
-        cfg = load_config(saved, overrides)
+        before = load_saved_config(saved)
+        cfg = load_saved_config(saved, overrides)
         if cfg.workspace != before.workspace:
             raise RomannetError("--resume cannot change the workspace or --resolution: the replay holds "
                                 f"{before.workspace.height_px}x{before.workspace.width_px} transitions")
