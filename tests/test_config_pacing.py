@@ -7,7 +7,7 @@ import pytest
 
 from romannet.common.config import load_config
 from romannet.common.config_learner import LearnerConfig
-from romannet.common.config_pacing import inserts_before_first_sample
+from romannet.common.config_pacing import check_prefill, inserts_before_first_sample
 from romannet.common.config_replay import ReplayConfig
 from romannet.common.errors import ConfigError
 from romannet.replay.ratelimiter import RateLimiter
@@ -109,3 +109,13 @@ def test_the_first_update_waits_for_the_larger_of_the_two_thresholds():
     replay, learner = ReplayConfig(min_size_to_sample=64), LearnerConfig(min_replay_size=32)
     assert transitions_before_first_update(replay, learner) == 64
     assert transitions_before_first_update(ReplayConfig(min_size_to_sample=8), learner) == 32
+
+
+def test_a_prefill_from_recordings_is_refused_under_a_ratio_limit() -> None:
+    """learner --offline and up --from-recordings feed every recording before the learner's first sample; the
+    limiter admits inserts_before_first_sample of them, so a longer feed would wait forever."""
+    check_prefill(ReplayConfig(samples_per_insert=0.0))
+    paced = ReplayConfig(min_size_to_sample=4, samples_per_insert=2.0, spi_tolerance=8.0, max_batch_size=8)
+    with pytest.raises(ConfigError, match=r"admits 8 transitions before the learner's first sample"):
+        check_prefill(paced)
+    assert inserts_before_first_sample(paced) == 8
