@@ -19,6 +19,17 @@ def test_defaults_match_the_paper():
     assert cfg.camera.intrinsics[0][0] == pytest.approx(618.62)
 
 
+def test_no_config_trains_the_clutter_recipe():
+    """`romannet up` without --config trains what `make run` does (configs/experiments/clutter.toml): the
+    defaults are that recipe, its pacing and two-harmonic pick head included."""
+    from pathlib import Path
+    recipe = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "clutter.toml"
+    assert load_config() == load_config(recipe, ['run_id="default"'])
+    cfg = load_config()
+    assert cfg.replay.samples_per_insert == 2.0 and cfg.actor.spool_max_items == 2
+    assert cfg.model.rotation_harmonics == 2
+
+
 def test_toml_file_then_overrides(tmp_path):
     path = tmp_path / "run.toml"
     path.write_text('run_id = "exp1"\n[reward]\npush_weight = 0.5\n[task]\nkind = "stacking"\n')
