@@ -42,7 +42,7 @@ import numpy as np
 import safetensors.torch
 import torch
 
-from romannet.common.config import Config, ModelConfig, load_config, without_retired
+from romannet.common.config import Config, ModelConfig, as_saved, load_saved_config
 from romannet.common.errors import RomannetError
 from romannet.common.exploration import ExplorationRate
 from romannet.common.fsutil import fsync_directory
@@ -184,7 +184,7 @@ def load_checkpoint(trainer: Trainer, run_dir: str | Path, path: str | Path | No
 
 
 def _check_configs(trainer: Trainer, ckpt: VerifiedCheckpoint) -> None:
-    saved_cfg, now_cfg = without_retired(ckpt.state["config"]), _configs(trainer)
+    saved_cfg, now_cfg = as_saved(ckpt.state["config"]), _configs(trainer)
     for section in ("model", "task"):
         if saved_cfg.get(section) != now_cfg[section]:
             raise ValueError(f"{ckpt.path} was trained with {section} config {saved_cfg.get(section)}, "
@@ -307,7 +307,7 @@ def read_package(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, A
     if actual != expected:
         raise RomannetError(f"{path / PACKAGE_WEIGHTS} has sha256 {actual[:12]}…, model.json says "
                             f"{str(expected)[:12]}…: the file is corrupt or was replaced")
-    cfg = load_config(path / PACKAGE_CONFIG)
+    cfg = load_saved_config(path / PACKAGE_CONFIG)
     tensors = from_package_dtypes(_load_safetensors(path / PACKAGE_WEIGHTS))
     return check_tensors(tensors, cfg.model, path / PACKAGE_WEIGHTS), meta, cfg
 
@@ -345,7 +345,7 @@ def read_init_weights(path: str | Path, model_cfg: ModelConfig) -> tuple[dict[st
                 f"{str((meta.get('weights') or {}).get('sha256'))[:12]})")
     else:
         tensors, state = read_checkpoint_model(where)
-        source_model = (state.get("config") or {}).get("model") or {}
+        source_model = as_saved(state.get("config") or {}).get("model") or {}
         what = f"checkpoint {where} (update {state.get('updates')})"
     theirs, ours = architecture(source_model), architecture(model_cfg)
     if theirs != ours:
