@@ -86,8 +86,9 @@ def measure_actor_time_shares(actions: int = 30, robot: str = "gripper", resolut
     from romannet.common.zenoh_session import free_port, make_config, open_session
 
     run_id = "bench-actor"
+    # No learner samples here: unpaced, or the replay would hold the actor's inserts once it is ahead.
     cfg = load_config(None, [f'run_id="{run_id}"', f"seed={seed}", f'sim.robot="{robot}"',
-                             f"workspace.resolution_m={resolution_m!r}"])
+                             f"workspace.resolution_m={resolution_m!r}", "replay.samples_per_insert=0"])
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     timers = _Timers()
     with tempfile.TemporaryDirectory(prefix="romannet-bench-actor-") as tmp:

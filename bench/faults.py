@@ -56,6 +56,8 @@ RUN_SETTINGS = [
     "learner.publish_every_updates=2", "learner.checkpoint_every_updates=4", "replay.min_size_to_sample=1",
     "sim.num_objects=3", 'sim.robot="gripper"', "workspace.resolution_m=0.007", "actor.record_camera=false",
     "actor.insert_timeout_s=3.0", "actor.resend_backoff_max_s=1.0", "actor.weights_fetch_timeout_s=5.0",
+    # Unpaced, with a deep spool: the actors act through the outages measured.
+    "replay.samples_per_insert=0", "actor.spool_max_items=2000",
 ]
 
 

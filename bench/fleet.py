@@ -47,9 +47,10 @@ from .weights_latency import router_argv
 log = logging.getLogger(__name__)
 
 RUN_ID = "fleet"
-# The learner trains flat out (no replay-ratio cap), from a small buffer, so its pace is its own.
+# The learner trains flat out (no replay-ratio cap), from a small buffer, so its pace is its own; the replay
+# does not pace the actors and a deep spool never stops them: their pace is period_s.
 BENCH_SETTINGS = (f'run_id="{RUN_ID}"', "learner.max_updates_per_insert=0", "learner.min_replay_size=8",
-                  "replay.min_size_to_sample=1")
+                  "replay.min_size_to_sample=1", "replay.samples_per_insert=0", "actor.spool_max_items=2000")
 # The tiny fleet of the tests (the faults and chaos benches' model and 64x64 heightmaps).
 TINY_SETTINGS = ("model.channels=4", "model.residual_blocks=1", "model.num_threads=1", "learner.num_threads=1",
                  'learner.precision="fp32"', "learner.batch_size=2", "workspace.resolution_m=0.007")

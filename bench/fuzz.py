@@ -50,6 +50,7 @@ min_size_to_sample = 1
 max_item_bytes = {_MAX_ITEM_BYTES}
 snapshot_every_s = 0.0
 snapshot_every_inserts = 0
+samples_per_insert = 0.0  # unpaced: nothing samples while the fuzz inserts
 """
 _MB = 1_000_000
 

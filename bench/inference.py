@@ -1,8 +1,9 @@
 """`romannet bench inference --json`: the actor's decision latency against two baselines, in one run.
 
 * decision_ms: the actor's path at 224×224 while not holding — preprocess, PushNet + PickNet through the
-  InferenceEngine, angle decoding and argmax selection (explore_rate 0).
-* decision_harmonics2_ms: the same path with the stacking recipes' two-harmonic rotation head
+  InferenceEngine, angle decoding and argmax selection (explore_rate 0), with the paper's rotation head
+  (model.rotation_harmonics = 1).
+* decision_harmonics2_ms: the same path with the two-harmonic rotation head
   (model.rotation_harmonics = 2: 5 output channels per net instead of 3, and the two-candidate decode);
   harmonics2_vs_decision is its ratio to decision_ms.
 * naive_fp32_all_nets_ms: eager fp32 forward of all three nets (plain nn.Module, NCHW, inference mode).
@@ -248,7 +249,8 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
     if repeats < 1 or agreement_inputs < 1 or rotation_repeats < 1:
         raise ValueError("repeats, agreement_inputs and rotation_repeats must be >= 1")
     started = time.perf_counter()
-    cfg = ModelConfig()
+    # The paper's rotation head (one harmonic), the baseline of decision_harmonics2_ms.
+    cfg = ModelConfig(rotation_harmonics=1)
     model = RoManNet(cfg, seed=seed).eval()
     engines, left_out = _precision_engines(model, cfg)
     auto = resolve_inference_precision(cfg.precision)
@@ -267,7 +269,7 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
     def decision_exploring() -> object:
         return decide(engine, color, depth, False, 1.0, rng, primitives, exploration)
 
-    # The stacking recipes' rotation head (model.rotation_harmonics = 2: 5 output channels instead of 3).
+    # The two-harmonic rotation head (model.rotation_harmonics = 2: 5 output channels instead of 3).
     cfg2 = replace(cfg, rotation_harmonics=2)
     engine2 = InferenceEngine(RoManNet(cfg2, seed=seed).eval(), cfg2)
 

@@ -191,9 +191,10 @@ def run_replay_benchmark(inserts: int = 2000, repeats: int = 200, seed: int = 0,
 def _write_config(work: Path) -> Path:
     config_path = work / "bench.toml"
     work.mkdir(parents=True, exist_ok=True)
-    # No time- or count-based snapshots: the recovery measurement then replays the whole log.
+    # No time- or count-based snapshots: the recovery measurement then replays the whole log. Unpaced: the
+    # insert phases sample nothing.
     config_path.write_text(f'run_id = "{_RUN_ID}"\n[replay]\nmin_size_to_sample = 8\n'
-                           "snapshot_every_s = 0.0\nsnapshot_every_inserts = 0\n")
+                           "snapshot_every_s = 0.0\nsnapshot_every_inserts = 0\nsamples_per_insert = 0.0\n")
     return config_path
 
 

@@ -32,7 +32,9 @@ class ActorConfig:
     max_actions: int = 0
     # Spool: every transition is written (fsync'ed) here before it is sent, and removed once acknowledged.
     spool_dir: str = ""  # "" = <run-dir>/actors/<actor_id>/spool
-    spool_max_items: int = 2000  # the actor pauses (stops acting) while the spool holds this many ...
+    # The actor pauses (stops acting) while the spool holds this many ... (2: it waits for the replay's paced
+    # acks, replay.samples_per_insert; an actor that must act through a replay outage wants thousands)
+    spool_max_items: int = 2
     spool_max_bytes: int = 1024 * _MIB  # ... or this many bytes of encoded transitions
     spool_fsync: bool = True  # False only for throw-away runs and tests
     # Sender: a background thread drains the spool to the replay server.

@@ -4,6 +4,7 @@ The replay server's samples-per-insert limiter (replay/ratelimiter.py) holds ins
 behind; the learner (learner/gate.py) waits for learner.min_replay_size transitions and caps its updates per
 insert. Some combinations wait on each other forever; the root Config refuses them with the numbers and the
 fix. (They can only be checked where one config file serves both, as `romannet up` and the recipes do.)
+A pre-fill from recordings (check_prefill) inserts before the learner samples at all: a ratio would hold it.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from .configbase import require
 
 def inserts_before_first_sample(replay: ReplayConfig) -> float:
     """How many transitions the limiter admits before anything has been sampled (inf without a ratio)."""
-    spi = replay.samples_per_insert
+    spi = replay.spi_limit
     if spi is None:
         return math.inf
     return replay.min_size_to_sample + math.floor(replay.spi_tolerance / spi + 1e-9)
@@ -34,7 +35,7 @@ def check_pacing(replay: ReplayConfig, learner: LearnerConfig) -> None:
     require(learner.batch_size <= replay.max_batch_size, "learner.batch_size", learner.batch_size,
             f"must be <= replay.max_batch_size ({replay.max_batch_size}), the largest batch the replay server "
             "serves")
-    spi = replay.samples_per_insert
+    spi = replay.spi_limit
     if spi is None:
         return
     admitted = inserts_before_first_sample(replay)
@@ -49,3 +50,13 @@ def check_pacing(replay: ReplayConfig, learner: LearnerConfig) -> None:
                 f"times learner.batch_size ({learner.batch_size}) samples {per_insert:g} per insert, fewer than "
                 f"replay.samples_per_insert ({spi:g}) the limiter waits for, so the actors and the learner "
                 "would end up waiting on each other; raise it (or 0 = no cap) or lower samples_per_insert")
+
+
+def check_prefill(replay: ReplayConfig) -> None:
+    """Raise ConfigError where the replay's ratio limit would hold a pre-fill from recordings (learner --offline,
+    up --from-recordings) forever: the learner samples only once every recorded transition is in."""
+    spi = replay.spi_limit
+    require(spi is None, "replay.samples_per_insert", replay.samples_per_insert,
+            f"must be 0 (no ratio limit) to pre-fill the replay from recordings: the limiter admits "
+            f"{inserts_before_first_sample(replay):g} transitions before the learner's first sample, and the "
+            "learner samples only once the recordings are fed; pass --set replay.samples_per_insert=0")

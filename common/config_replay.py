@@ -27,11 +27,14 @@ class ReplayConfig:
     alpha: float = 0.7  # Schaul et al.'s rank-based choice
     beta0: float = 0.5
     beta_anneal_updates: int = 100_000  # sampled batches (learner updates) until beta reaches 1
-    max_batch_size: int = 256  # largest batch one sample call may ask for
-    # Rate limiting (Reverb semantics).
+    max_batch_size: int = 8  # largest batch one sample call may ask for (the learner's batch_size is 4)
+    # Rate limiting (Reverb semantics). The defaults pace actors and a learner sharing one small box at VPG's
+    # two trained transitions per action: an insert's ack waits while the learner is more than a few updates
+    # behind, and the actor's small spool (actor.spool_max_items) makes it wait, so learning per action does
+    # not depend on the machine's speed.
     min_size_to_sample: int = 64  # items in the buffer before any sample is served
-    samples_per_insert: float | None = None  # None: no ratio limit
-    spi_tolerance: float = 512.0  # Reverb's error_buffer: allowed drift of samples - spi * inserts
+    samples_per_insert: float = 2.0  # 0 = no ratio limit (TOML has no null to say "unset")
+    spi_tolerance: float = 8.0  # Reverb's error_buffer: allowed drift of samples - spi * inserts
     # Durability.
     segment_max_bytes: int = 256 * (1 << 20)  # log segment rotation size
     fsync: bool = True  # False only for throw-away runs: acks then survive a process crash, not power loss
@@ -64,7 +67,7 @@ class ReplayConfig:
                 "items to start sampling, so every sample would block forever")
         require(math.isfinite(self.spi_tolerance) and self.spi_tolerance >= 0, "replay.spi_tolerance",
                 self.spi_tolerance, "must be a finite number >= 0")
-        if self.samples_per_insert is not None:
+        if self.samples_per_insert != 0:
             self._check_ratio()
         require(self.segment_max_bytes >= 1 << 20, "replay.segment_max_bytes", self.segment_max_bytes,
                 "must be >= 1 MiB (1048576); a segment is rotated before the chunk that would overflow it")
@@ -76,6 +79,11 @@ class ReplayConfig:
         require(1 <= self.histogram_bins <= 1000, "replay.histogram_bins", self.histogram_bins, "must be 1..1000")
         require(0 <= self.top_k <= 1000, "replay.top_k", self.top_k, "must be 0..1000")
 
+    @property
+    def spi_limit(self) -> float | None:
+        """The samples-per-insert ratio the limiter enforces, None for none (samples_per_insert = 0)."""
+        return self.samples_per_insert or None
+
     def _check_ratio(self) -> None:
         """Refuse a samples-per-insert limiter that can reach a state where neither side may proceed.
 
@@ -84,9 +92,8 @@ class ReplayConfig:
         reachable d unless hi - lo >= B + spi, i.e. 2 * spi_tolerance >= max_batch_size + spi.
         """
         spi = self.samples_per_insert
-        require(spi is not None and math.isfinite(spi) and spi > 0, "replay.samples_per_insert", spi,
-                "must be a finite number > 0, or left out for no ratio limit")
-        assert spi is not None
+        require(math.isfinite(spi) and spi > 0, "replay.samples_per_insert", spi,
+                "must be a finite number > 0, or 0 for no ratio limit")
         need = self.max_batch_size + spi
         require(2 * self.spi_tolerance >= need, "replay.spi_tolerance", self.spi_tolerance,
                 f"with samples_per_insert = {spi} and max_batch_size = {self.max_batch_size} the limiter can "

@@ -111,12 +111,10 @@ class FastNet:
             self.up = [_Layer(*_fold(net.deconv1, net.bn4, True, dtype), dtype, 2, 1, True, fused),
                        _Layer(*_fold(net.deconv2, net.bn5, True, dtype), dtype, 2, 1, True, fused)]
             self.conv6 = _Layer(net.conv6.weight, net.conv6.bias, dtype, 1, 4, False, fused)
-            heads = [net.q_head] if net.rot_head is None else [net.q_head, net.rot_head]
-            heads_w = torch.cat([h.weight for h in heads], 0)[:, :, 0, 0]
-            self.heads_w = heads_w.detach().float().t().contiguous()  # (C, 1 + rotation channels) or (C, K)
-            self.heads_b = torch.cat([h.bias for h in heads]).detach().float()
+            heads_w = torch.cat([net.q_head.weight, net.rot_head.weight], 0)[:, :, 0, 0]
+            self.heads_w = heads_w.detach().float().t().contiguous()  # (C, 1 + rotation channels)
+            self.heads_b = torch.cat([net.q_head.bias, net.rot_head.bias]).detach().float()
             self.outputs = int(self.heads_b.numel())
-            self.bin_rotation = net.bin_rotation.float() if net.rot_head is None else None
 
     def __call__(self, x: Tensor) -> Tensor:
         return self.tail(self.trunk(x))
@@ -140,14 +138,4 @@ class FastNet:
         x = self.conv6(x, relu=False)
         b, c, h, w = x.shape
         rows = x.permute(0, 2, 3, 1).reshape(-1, c).float()  # a view for channels_last
-        out = torch.addmm(self.heads_b, rows, self.heads_w).view(b, h, w, self.outputs)
-        return select_bin(out, self.bin_rotation)
-
-
-def select_bin(out: Tensor, bin_rotation: Tensor | None) -> Tensor:
-    """(B,H,W,outputs) head outputs → (B,H,W,1+R): as they are with a rotation head; with angle bins the best
-    bin's Q and its angle's (cos 2θ, sin 2θ), as GRConvNet.forward."""
-    if bin_rotation is None:
-        return out
-    q, best = out.max(dim=-1)
-    return torch.cat([q[..., None], bin_rotation[best]], dim=-1)
+        return torch.addmm(self.heads_b, rows, self.heads_w).view(b, h, w, self.outputs)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .fastnet import FastNet, _Layer, select_bin
+from .fastnet import FastNet, _Layer
 from .model import GRConvNet
 
 _MIN_SCALE = 1e-12  # an all-zero tensor still gets a valid scale
@@ -137,7 +137,7 @@ class Int8Net:
             self.conv3 = _QConv(f.layers[2].weight, f.layers[2].bias, 2, 1)
             self.res = [(_QConv(first.weight, first.bias, 1, 1), _QConv(second.weight, second.bias, 1, 1))
                         for first, second in f.res]
-            # Fold the heads into conv6 only where that makes it narrower (not for many angle bins).
+            # Fold the heads into conv6 only where that makes it narrower (fewer outputs than channels).
             self.head = _Layer(*folded_head(f), torch.float32, 1, 4, False, f.conv6.fused) \
                 if f.outputs < f.conv6.weight.shape[0] else None
 
@@ -149,7 +149,7 @@ class Int8Net:
         if self.head is None:
             return self.exact.tail(features)
         out = self.head(features, relu=False).permute(0, 2, 3, 1).contiguous()
-        return select_bin(out, self.exact.bin_rotation)
+        return out
 
     def trunk(self, x: Tensor) -> Tensor:
         """(B,4,H,W) fp32 input → the (B,C,H,W) features conv6 reads; each int8 conv's input is quantised at

@@ -19,14 +19,6 @@ grasps have the same target, so it learns the cube's faces; decoding takes θ mo
 of the two candidates π/k apart, the one the first harmonic prefers (for a cube either is right; for an
 oblong object the first harmonic, which never saw the long-side grasp succeed, tells them apart).
 
-With model.angle_bins = K > 0 the pick and place nets have no rotation head: their Q head has K maps, one per
-gripper yaw j pi / K (VPG's 16 rotations, as output channels of one pass instead of 16 input rotations), and
-the decision is the argmax over pixels and bins. Why: the regression head is trained only toward angles that
-succeeded, so it reproduces the policy's own angles and never learns that another angle would have done
-better; a Q per bin is trained down where a grasp at that angle failed, as VPG's rotations are.
-`GRConvNet.forward` returns the best bin's Q and that bin's angle encoded as a rotation head's channels, so
-every consumer of (q, rotation) reads a binned net unchanged; the learner trains `forward_bins`.
-
 Weights cross processes as a flat {name: tensor} dict (shipped as safetensors by the learner), validated by
 `load_tensors`; nothing here unpickles.
 """
@@ -67,16 +59,12 @@ class ResidualBlock(nn.Module):
 
 
 class GRConvNet(nn.Module):
-    """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2 * harmonics, h, w): cos, sin, ...).
-
-    angle_bins = K > 0 (pick/place only): K Q maps, one per yaw of bin_angles(K), and no rotation head;
-    forward gives the best bin's Q and its angle as (cos 2θ, sin 2θ), forward_bins all K maps."""
+    """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2 * harmonics, h, w): cos, sin, ...)."""
 
     def __init__(self, channels: int = 32, residual_blocks: int = 5, in_channels: int = 4,
-                 rotation_harmonics: int = 1, q_head_scale: float = 1.0, angle_bins: int = 0):
+                 rotation_harmonics: int = 1, q_head_scale: float = 1.0):
         super().__init__()
         c = channels
-        self.angle_bins = angle_bins
         self.conv1 = nn.Conv2d(in_channels, c, 9, padding=4)
         self.bn1 = nn.BatchNorm2d(c)
         self.conv2 = nn.Conv2d(c, 2 * c, 4, stride=2, padding=1)
@@ -90,17 +78,14 @@ class GRConvNet(nn.Module):
         self.deconv2 = nn.ConvTranspose2d(2 * c, c, 4, stride=2, padding=1)
         self.bn5 = nn.BatchNorm2d(c)
         self.conv6 = nn.Conv2d(c, c, 9, padding=4)
-        self.q_head = nn.Conv2d(c, max(1, angle_bins), 1)
-        self.rot_head = nn.Conv2d(c, 2 * rotation_harmonics, 1) if not angle_bins else None
-        if angle_bins:  # (K, 2) table of each bin's (cos 2θ, sin 2θ), not a parameter and not saved
-            self.register_buffer("bin_rotation", torch.from_numpy(bin_rotations(angle_bins)), persistent=False)
+        self.q_head = nn.Conv2d(c, 1, 1)
+        self.rot_head = nn.Conv2d(c, 2 * rotation_harmonics, 1)
         if q_head_scale != 1.0:  # model.q_head_init = "small": every Q map starts within a few hundredths of 0
             with torch.no_grad():
                 self.q_head.weight.mul_(q_head_scale)
                 self.q_head.bias.mul_(q_head_scale)
 
-    def features(self, x: Tensor) -> Tensor:
-        """The trunk's (B, C, h, w) features that the 1x1 heads read."""
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         h, w = x.shape[-2:]
         if h % 4 or w % 4:
             raise ValueError(f"input is {h}x{w}: RoManNet needs h and w to be multiples of 4")
@@ -110,18 +95,8 @@ class GRConvNet(nn.Module):
         x = self.res(x)
         x = torch.relu(self.bn4(self.deconv1(x)))
         x = torch.relu(self.bn5(self.deconv2(x)))
-        return self.conv6(x)
-
-    def forward_bins(self, x: Tensor) -> Tensor:
-        """(B, K, h, w) Q maps, one per angle bin (K = 1 for a net with a rotation head)."""
-        return self.q_head(self.features(x))
-
-    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        f = self.features(x)
-        if self.rot_head is not None:
-            return self.q_head(f)[:, 0], self.rot_head(f)
-        q, best = self.q_head(f).max(dim=1)
-        return q, self.bin_rotation.to(q.dtype)[best].permute(0, 3, 1, 2)
+        x = self.conv6(x)
+        return self.q_head(x)[:, 0], self.rot_head(x)
 
 
 class RoManNet(nn.Module):
@@ -136,8 +111,7 @@ class RoManNet(nn.Module):
             torch.manual_seed(seed)
             self.nets = nn.ModuleDict({
                 p: GRConvNet(cfg.channels, cfg.residual_blocks, rotation_harmonics=cfg.rotation_harmonics,
-                             q_head_scale=Q_HEAD_SCALES[cfg.q_head_init],
-                             angle_bins=cfg.angle_bins if p in SYMMETRIC_PRIMITIVES else 0)
+                             q_head_scale=Q_HEAD_SCALES[cfg.q_head_init])
                 for p in PRIMITIVES
             })
 
@@ -243,30 +217,6 @@ def decode_rotation(channels: np.ndarray, primitive: str) -> np.ndarray:
     period = 2 * np.pi / k  # fold into the primitive's range (−period/2, period/2]
     theta = np.where(theta > period / 2, theta - period, theta)
     return theta
-
-
-def bin_angles(bins: int) -> np.ndarray:
-    """The yaws of an angle-binned net's K maps: j pi / K for j < K, folded into (−π/2, π/2] (bin 0 is 0)."""
-    if bins < 1:
-        raise ValueError(f"bins = {bins!r} must be >= 1")
-    theta = np.arange(bins) * np.pi / bins
-    return np.where(theta > np.pi / 2, theta - np.pi, theta)
-
-
-def bin_rotations(bins: int) -> np.ndarray:
-    """(K, 2) float32 (cos 2θ, sin 2θ) of each bin's yaw, computed in float64 so that decoding gives the bin's
-    yaw back (sin 2θ of θ = π/2 stays +0, not a float32 rounding's −0 that would decode to −π/2)."""
-    theta = bin_angles(bins)
-    return np.stack([np.cos(2 * theta), np.sin(2 * theta)], axis=1).astype(np.float32)
-
-
-def angle_bin(theta: float, bins: int) -> int:
-    """The bin of gripper yaw θ (radians, any value): the nearest of bin_angles(K), modulo π."""
-    if bins < 1:
-        raise ValueError(f"bins = {bins!r} must be >= 1")
-    if not math.isfinite(theta):
-        raise ValueError(f"angle {theta!r} must be finite")
-    return int(round(theta * bins / math.pi)) % bins
 
 
 # ----------------------------------------------------------------------------------------------------------

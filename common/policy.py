@@ -14,7 +14,7 @@ import logging
 import os
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -28,15 +28,7 @@ from .exploration import select_action
 from .failure_memory import FailureMemory, join_masks
 from .fastnet import FastNet, fused_ops_available
 from .int8net import Int8Net, int8_ops_available
-from .model import (
-    SYMMETRIC_PRIMITIVES,
-    RoManNet,
-    angle_bin,
-    bin_angles,
-    decode_rotation,
-    load_tensors,
-    preprocess,
-)
+from .model import RoManNet, decode_rotation, load_tensors, preprocess
 
 logger = logging.getLogger(__name__)
 
@@ -299,13 +291,4 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
             exact = engine.infer(color_hm, depth_hm, rerun, exact=True)
             maps, chosen_from = masked(PolicyMaps({**raw.q, **exact.q}, {**raw.angle, **exact.angle}))
     action = select_action(chosen_from, maps.angle, explore_rate, exploration_cfg, rng, chosen_masks)
-    action = snap_to_bin(action, model.cfg.angle_bins)
     return (action, maps) if return_maps else action
-
-
-def snap_to_bin(action: Action, bins: int) -> Action:
-    """A pick or place of an angle-binned net at its bin's yaw, so an explored random angle is executed as the
-    bin the learner will credit with its outcome (unchanged without bins or for a push)."""
-    if not bins or action.primitive not in SYMMETRIC_PRIMITIVES:
-        return action
-    return replace(action, angle_rad=float(bin_angles(bins)[angle_bin(action.angle_rad, bins)]))

@@ -42,7 +42,7 @@ import numpy as np
 import safetensors.torch
 import torch
 
-from romannet.common.config import Config, ModelConfig, load_config, without_retired
+from romannet.common.config import Config, ModelConfig, as_saved, load_saved_config
 from romannet.common.errors import RomannetError
 from romannet.common.exploration import ExplorationRate
 from romannet.common.fsutil import fsync_directory
@@ -184,7 +184,7 @@ def load_checkpoint(trainer: Trainer, run_dir: str | Path, path: str | Path | No
 
 
 def _check_configs(trainer: Trainer, ckpt: VerifiedCheckpoint) -> None:
-    saved_cfg, now_cfg = without_retired(ckpt.state["config"]), _configs(trainer)
+    saved_cfg, now_cfg = as_saved(ckpt.state["config"]), _configs(trainer)
     for section in ("model", "task"):
         if saved_cfg.get(section) != now_cfg[section]:
             raise ValueError(f"{ckpt.path} was trained with {section} config {saved_cfg.get(section)}, "
@@ -226,9 +226,7 @@ PACKAGE_FORMAT = 1
 FP32_IN_PACKAGE = ("running_mean", "running_var")
 # The fields that make the same weights the same function: precision, channels_last and num_threads say how
 # a process computes it, q_head_init only how a fresh net starts, so a run may differ from its source there.
-ARCHITECTURE_FIELDS = ("channels", "residual_blocks", "rotation_harmonics", "angle_bins")
-# What a saved config written before a field existed was trained with.
-ARCHITECTURE_BEFORE_FIELD = {"angle_bins": 0}
+ARCHITECTURE_FIELDS = ("channels", "residual_blocks", "rotation_harmonics")
 
 
 def to_package_dtypes(tensors: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -259,7 +257,7 @@ def is_model_package(path: str | Path) -> bool:
 def architecture(model: ModelConfig | Mapping[str, Any]) -> dict[str, Any]:
     """The ARCHITECTURE_FIELDS of a model config (a dataclass or its saved dict)."""
     data = dataclasses.asdict(model) if isinstance(model, ModelConfig) else dict(model)
-    return {k: data.get(k, ARCHITECTURE_BEFORE_FIELD.get(k)) for k in ARCHITECTURE_FIELDS}
+    return {k: data.get(k) for k in ARCHITECTURE_FIELDS}
 
 
 def _load_safetensors(path: Path) -> dict[str, torch.Tensor]:
@@ -309,7 +307,7 @@ def read_package(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, A
     if actual != expected:
         raise RomannetError(f"{path / PACKAGE_WEIGHTS} has sha256 {actual[:12]}…, model.json says "
                             f"{str(expected)[:12]}…: the file is corrupt or was replaced")
-    cfg = load_config(path / PACKAGE_CONFIG)
+    cfg = load_saved_config(path / PACKAGE_CONFIG)
     tensors = from_package_dtypes(_load_safetensors(path / PACKAGE_WEIGHTS))
     return check_tensors(tensors, cfg.model, path / PACKAGE_WEIGHTS), meta, cfg
 
@@ -347,7 +345,7 @@ def read_init_weights(path: str | Path, model_cfg: ModelConfig) -> tuple[dict[st
                 f"{str((meta.get('weights') or {}).get('sha256'))[:12]})")
     else:
         tensors, state = read_checkpoint_model(where)
-        source_model = (state.get("config") or {}).get("model") or {}
+        source_model = as_saved(state.get("config") or {}).get("model") or {}
         what = f"checkpoint {where} (update {state.get('updates')})"
     theirs, ours = architecture(source_model), architecture(model_cfg)
     if theirs != ours:

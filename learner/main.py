@@ -23,6 +23,7 @@ import threading
 from pathlib import Path
 
 from romannet.common.config import Config, load_config
+from romannet.common.config_pacing import check_prefill
 from romannet.common.errors import RomannetError
 from romannet.common.signals import stop_on_signals
 from romannet.common.zenoh_limits import learner_receive_limit, limit_messages
@@ -68,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
                             "checkpoint: pass one of them")
     check_run_dir(run_dir, args.resume)
     config = resolve_config(args.config, args.overrides, run_dir, args.resume)
+    if getattr(args, "offline", None):
+        check_prefill(config.replay)
     init_weights = None
     if init_from:
         init_weights, what = read_init_weights(init_from, config.model)

@@ -9,8 +9,7 @@ One `train_step(batch)`:
    loss (learner/losses.py, whose docstring has the formulas): the Huber loss over each label's support
    + the rotation loss on successes (and on failures toward the opposite angle with
    learner.rotation_failure_weight: at the executed pixel, or over the support with learner.rotation_support
-   = "kernel"; none for a net with model.angle_bins, whose executed bin's Q map is the one trained)
-   + learner.executed_pixel_weight x the paper's Huber(Q(s_t, a_t) - Y_t) at the executed pixel,
+   = "kernel") + learner.executed_pixel_weight x the paper's Huber(Q(s_t, a_t) - Y_t) at the executed pixel,
    times the item's importance-sampling weight, averaged over the batch. Only the executed
    primitives' nets get gradients; the others keep `.grad is None`, so SGD skips them entirely (no weight
    decay, no momentum).
@@ -47,7 +46,7 @@ from romannet.common.config import ExplorationConfig, ModelConfig, RewardConfig,
 from romannet.common.config_learner import LearnerConfig
 from romannet.common.errors import ConfigError
 from romannet.common.exploration import ExplorationRate
-from romannet.common.model import RoManNet, angle_bin, preprocess_batch, state_dict_to_tensors
+from romannet.common.model import RoManNet, preprocess_batch, state_dict_to_tensors
 from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 
@@ -122,7 +121,7 @@ def _fp32_head_forward(self: torch.nn.Conv2d, x: Tensor) -> Tensor:
 def _fp32_heads(model: RoManNet) -> None:
     """Make every net's Q and rotation heads compute in fp32 under autocast (state_dict keys unchanged)."""
     for net in model.nets.values():
-        for head in (h for h in (net.q_head, net.rot_head) if h is not None):
+        for head in (net.q_head, net.rot_head):
             head.forward = types.MethodType(_fp32_head_forward, head)
 
 
@@ -324,29 +323,19 @@ class Trainer:
         """The loss of one primitive's items in one forward pass of its net (learner/losses.py)."""
         cfg = self.cfg
         g = self._group_inputs(ts, v_next)
-        net = self.model.nets[p]
+        with self._autocast():
+            q, rot = self.model.nets[p](g.x)
+        q, rot = q.float(), rot.float()
         ar = torch.arange(len(ts), device=self.device)
-        if net.angle_bins:  # the executed angle's bin is trained, the other bins' maps are not
-            with self._autocast():
-                q_bins = net.forward_bins(g.x)
-            bins = torch.tensor([angle_bin(t.action.angle_rad, net.angle_bins) for t in ts], device=self.device)
-            q = q_bins.float()[ar, bins]
-        else:
-            with self._autocast():
-                q, rot = net(g.x)
-            q, rot = q.float(), rot.float()
         q_exec = q[ar, g.rows, g.cols]
         y = torch.tensor(targets, device=self.device)
         is_w = torch.tensor(is_weights, device=self.device, dtype=torch.float32)
         q_losses = q_loss(q, g.label, g.support, cfg.huber_delta, cfg.loss_reduction)
-        if net.angle_bins:
-            rot_losses = torch.zeros(len(ts), device=self.device)
-        else:
-            rho, rho_w = rotation_targets([t.action.angle_rad for t in ts], [t.success for t in ts], p,
-                                          self.model.cfg.rotation_harmonics, cfg.rotation_failure_weight)
-            rho, rho_w = rho.to(self.device), rho_w.to(self.device)
-            rot_losses = (rotation_kernel_loss(rot, rho, rho_w, g.support) if cfg.rotation_support == "kernel"
-                          else rotation_pixel_loss(rot[ar, :, g.rows, g.cols], rho, rho_w))
+        rho, rho_w = rotation_targets([t.action.angle_rad for t in ts], [t.success for t in ts], p,
+                                      self.model.cfg.rotation_harmonics, cfg.rotation_failure_weight)
+        rho, rho_w = rho.to(self.device), rho_w.to(self.device)
+        rot_losses = (rotation_kernel_loss(rot, rho, rho_w, g.support) if cfg.rotation_support == "kernel"
+                      else rotation_pixel_loss(rot[ar, :, g.rows, g.cols], rho, rho_w))
         pixel_losses = executed_pixel_loss(q_exec, y, cfg.huber_delta)
         item_losses = item_loss(q_losses, rot_losses, cfg.rotation_loss_weight, pixel_losses,
                                 cfg.executed_pixel_weight)

@@ -95,7 +95,7 @@ class ReplayStore:
         self._insert_rate, self._sample_rate = RateMeter(), RateMeter()
         self._rng = np.random.default_rng()
         self._closed = False
-        self._limiter = RateLimiter(cfg.min_size_to_sample, cfg.samples_per_insert, cfg.spi_tolerance)
+        self._limiter = RateLimiter(cfg.min_size_to_sample, cfg.spi_limit, cfg.spi_tolerance)
         self._dir_lock = DirectoryLock(self.directory, "replay directory")  # before recovery repairs anything
         try:
             self.recovered, self._losses, self._legacy_segments = recover(self.directory, accept_loss)

@@ -46,7 +46,8 @@ EXAMPLES = {
     "learner": ("romannet learner --config configs/default.toml --run-dir runs/default/learner "
                 "--connect tcp/127.0.0.1:7447\n  romannet learner --run-dir runs/default/learner --resume "
                 "--connect tcp/127.0.0.1:7447\n  romannet learner --config configs/default.toml --run-dir "
-                "runs/offline/learner --offline runs/demo/episodes --max-updates 2000 --connect tcp/127.0.0.1:7447"),
+                "runs/offline/learner --offline runs/demo/episodes --max-updates 2000 --set "
+                "replay.samples_per_insert=0 --connect tcp/127.0.0.1:7447"),
     "router": ROUTER_EXAMPLE,
     "deploy": DEPLOY_EXAMPLE,
     "actor": ("romannet actor --config configs/default.toml --run-dir runs/default --actor-id actor-0 "
@@ -309,7 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="first feed these MCAP episode recordings to the replay server (acknowledged, idempotent), "
                         "then train: without actors, or mixed with live ones (repeatable). A file that is not an "
                         "episode is skipped, of a damaged one every intact chunk is fed, each named in one log "
-                        "line; training goes on (check recordings with `romannet mcap inspect --verify`)")
+                        "line; training goes on (check recordings with `romannet mcap inspect --verify`). The "
+                        "replay must have no ratio limit (replay.samples_per_insert = 0)")
     p.add_argument("--max-updates", type=int, default=0, metavar="N",
                    help="stop (checkpoint, exit 0) once the learner reaches update N (default: 0 = until a signal)")
     p.add_argument("--init-from", metavar="DIR",

@@ -40,7 +40,7 @@ from typing import Any
 
 import safetensors.torch
 
-from romannet.common.config import load_config
+from romannet.common.config import as_saved, load_config, load_saved_config
 from romannet.common.configbase import dumps_toml, to_dict
 from romannet.common.errors import RomannetError
 from romannet.learner.checkpoint import (
@@ -149,8 +149,8 @@ def package_files(source: Path, eval_dir: Path, out: Path, now: dt.datetime | No
     config_path = run_dir / "config.toml"
     if not config_path.is_file():
         raise RomannetError(f"{config_path} does not exist: {ckpt} is not inside a run directory")
-    cfg = load_config(config_path)
-    trained = (state.get("config") or {}).get("model") or {}
+    cfg = load_saved_config(config_path)
+    trained = as_saved(state.get("config") or {}).get("model") or {}
     if architecture(trained) != architecture(cfg.model):
         raise RomannetError(f"{ckpt} was trained with model {architecture(trained)}, but {config_path} says "
                             f"{architecture(cfg.model)}")

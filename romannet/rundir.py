@@ -45,7 +45,8 @@ def _flag_overrides(args: argparse.Namespace) -> list[str]:
 
 def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
     """Validate the arguments, create the run directory and write its config.toml (before any child)."""
-    from romannet.common.config import load_config
+    from romannet.common.config import load_config, load_saved_config
+    from romannet.common.config_pacing import check_prefill
     from romannet.common.configbase import write_toml
 
     name = args.name or time.strftime("run-%Y%m%d-%H%M%S")
@@ -75,8 +76,8 @@ def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
         _check_replay_free(run_dir)
         _check_actor_states(run_dir, args.actors)
         _warn_left_spools(run_dir, args.actors)
-        before = load_config(saved)
-        cfg = load_config(saved, overrides)
+        before = load_saved_config(saved)
+        cfg = load_saved_config(saved, overrides)
         if cfg.workspace != before.workspace:
             raise RomannetError("--resume cannot change the workspace or --resolution: the replay holds "
                                 f"{before.workspace.height_px}x{before.workspace.width_px} transitions")
@@ -84,6 +85,8 @@ def prepare_run(args: argparse.Namespace) -> tuple[Path, Config]:
         if run_dir.exists() and any(run_dir.iterdir()):
             raise RomannetError(f"{run_dir} already exists: pass --resume to continue that run, or another --name")
         cfg = load_config(args.config, overrides)
+    if recordings:
+        check_prefill(cfg.replay)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_toml(cfg, saved)
     write_json_atomic(run_dir / LAUNCH_FILE, {"actors": args.actors, "max_actions": args.max_actions})

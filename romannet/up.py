@@ -2,7 +2,8 @@
 
     romannet up --config configs/experiments/clutter.toml --actors 2 --max-actions 2000
     romannet up --name run-1 --resume
-    romannet up --name offline-1 --actors 0 --from-recordings runs/run-1/episodes   (learner/offline.py)
+    romannet up --name offline-1 --actors 0 --from-recordings runs/run-1/episodes \
+        --set replay.samples_per_insert=0   (learner/offline.py)
     romannet up --name ft-1 --config models/clutter/config.toml --init-from models/clutter
     romannet up --foxglove 8765    (each actor live in the Foxglove app: romannet/mcaptools/live.py)
 
@@ -85,7 +86,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="pre-fill the replay server with these MCAP episode recordings (the learner feeds them, "
                    "acknowledged and idempotent, before it trains); with actors, recorded and live experience "
                    "mix (repeatable). A damaged file costs only its damaged chunks and a file that is not an "
-                   "episode is skipped, each named in one line of logs/learner.log; the run goes on")
+                   "episode is skipped, each named in one line of logs/learner.log; the run goes on. Needs "
+                   "--set replay.samples_per_insert=0 (no ratio limit)")
     p.add_argument("--max-actions", type=int, metavar="N",
                    help="total actions of the run over the whole fleet, split evenly between the actors; the "
                    "launcher stops everything cleanly when every actor has done its share; with --resume "

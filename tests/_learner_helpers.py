@@ -13,8 +13,9 @@ from romannet.common.wire_messages import TransitionMsg
 from romannet.learner.trainer import Trainer
 
 # PyTorch's Q-head init: the exact-value tests need Q maps well away from 0 (the default "small" head starts
-# within a few hundredths of it).
-SMALL_MODEL = ModelConfig(channels=8, residual_blocks=1, q_head_init="default")
+# within a few hundredths of it); the paper's rotation head (cos, sin), which their targets and learning rates
+# were set for.
+SMALL_MODEL = ModelConfig(channels=8, residual_blocks=1, q_head_init="default", rotation_harmonics=1)
 
 
 def transition(size: int = 32, seed: int = 0, primitive: str = "pick", row: int = 10, col: int = 12,

@@ -14,9 +14,10 @@ from romannet.replay.store import ReplayStore
 
 
 def cfg(**overrides: Any) -> ReplayConfig:
-    """A small config; fsync stays on (the durability tests rely on it), snapshots only when asked."""
+    """A small config; fsync stays on (the durability tests rely on it), snapshots only when asked; no ratio
+    limit and batches up to 256 (the store tests insert and sample as they please) unless a test sets them."""
     base: dict[str, Any] = dict(capacity_items=1000, min_size_to_sample=1, snapshot_every_s=0.0,
-                                snapshot_every_inserts=0)
+                                snapshot_every_inserts=0, samples_per_insert=0.0, max_batch_size=256)
     base.update(overrides)
     return ReplayConfig(**base)
 

@@ -45,8 +45,9 @@ def cfg() -> Config:
 
 @pytest.fixture
 def store(tmp_path: Path):
+    # Unpaced: no learner samples here.
     s = ReplayStore(ReplayConfig(fsync=False, min_size_to_sample=1, snapshot_every_s=0.0,
-                                 snapshot_every_inserts=0), tmp_path / "replay")
+                                 snapshot_every_inserts=0, samples_per_insert=0.0), tmp_path / "replay")
     yield s
     s.close()
 

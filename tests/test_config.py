@@ -19,6 +19,17 @@ def test_defaults_match_the_paper():
     assert cfg.camera.intrinsics[0][0] == pytest.approx(618.62)
 
 
+def test_no_config_trains_the_clutter_recipe():
+    """`romannet up` without --config trains what `make run` does (configs/experiments/clutter.toml): the
+    defaults are that recipe, its pacing and two-harmonic pick head included."""
+    from pathlib import Path
+    recipe = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "clutter.toml"
+    assert load_config() == load_config(recipe, ['run_id="default"'])
+    cfg = load_config()
+    assert cfg.replay.samples_per_insert == 2.0 and cfg.actor.spool_max_items == 2
+    assert cfg.model.rotation_harmonics == 2
+
+
 def test_toml_file_then_overrides(tmp_path):
     path = tmp_path / "run.toml"
     path.write_text('run_id = "exp1"\n[reward]\npush_weight = 0.5\n[task]\nkind = "stacking"\n')
@@ -187,3 +198,28 @@ def test_a_saved_config_naming_a_removed_field_loads_at_its_old_default():
     assert without_retired({"model": {"channels": 32, "dropout": 0.0}}) == {"model": {"channels": 32}}
     for package in sorted((Path(__file__).resolve().parents[1] / "models").glob("*/config.toml")):
         load_config(package)  # written before some fields were removed
+
+
+def test_a_saved_config_without_a_field_whose_default_changed_loads_as_it_ran(tmp_path):
+    """A config saved before model.rotation_harmonics existed ran the one-harmonic head, and one saved with no
+    samples_per_insert ran without a ratio limit (its unset value was not written): a saved config (a run's,
+    a checkpoint's, a package's) loads as it ran, a recipe that leaves them out gets the defaults."""
+    from pathlib import Path
+
+    import tomli_w
+
+    from romannet.common.config import SAVED_WITHOUT, as_saved, load_config_text, load_saved_config
+    assert set(SAVED_WITHOUT) == {"model.rotation_harmonics", "replay.samples_per_insert"}
+    old = to_dict(Config())
+    del old["model"]["rotation_harmonics"], old["replay"]["samples_per_insert"]
+    path = tmp_path / "config.toml"
+    path.write_text(tomli_w.dumps(old))
+    for cfg in (load_saved_config(path), load_config_text(path.read_text())):
+        assert cfg.model.rotation_harmonics == 1 and cfg.replay.spi_limit is None
+    assert load_saved_config(path, ["model.rotation_harmonics=2"]).model.rotation_harmonics == 2
+    assert load_config(path) == Config()  # a recipe: the defaults
+    assert as_saved({"model": {"channels": 32}})["model"] == {"channels": 32, "rotation_harmonics": 1}
+    write_toml(Config(), path)  # saved now: every field written, nothing filled in
+    assert load_saved_config(path) == Config() == load_config_text(path.read_text())
+    for package in sorted((Path(__file__).resolve().parents[1] / "models").glob("*/config.toml")):
+        assert load_saved_config(package) == load_config(package)

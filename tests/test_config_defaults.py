@@ -135,8 +135,8 @@ def test_each_kind_of_problem_is_one_line_naming_the_field():
     assert lr is not None
     [missing] = _edited(lr[0], lr[0].replace(lr[1], ""))
     assert "lacks learner.lr" in missing and "`lr = 0.0001` under [learner]" in missing
-    [unset] = _edited("# samples_per_insert = ", "# (was samples_per_insert) ")
-    assert "lacks replay.samples_per_insert (unset by default)" in unset
+    [unset] = _edited("# finger_force_n = ", "# (was finger_force_n) ")
+    assert "lacks sim.finger_force_n (unset by default)" in unset
     [unknown] = _edited("[calibration]", "[calibration]\n# A key Config does not know.\nbogus_m = 1.0")
     assert "calibration.bogus_m is not a Config field" in unknown
     [value] = _edited("\ngamma = 0.5\n", "\ngamma = 0.6\n")

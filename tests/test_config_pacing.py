@@ -7,14 +7,14 @@ import pytest
 
 from romannet.common.config import load_config
 from romannet.common.config_learner import LearnerConfig
-from romannet.common.config_pacing import inserts_before_first_sample
+from romannet.common.config_pacing import check_prefill, inserts_before_first_sample
 from romannet.common.config_replay import ReplayConfig
 from romannet.common.errors import ConfigError
 from romannet.replay.ratelimiter import RateLimiter
 
 
 def _limiter(replay: ReplayConfig) -> RateLimiter:
-    return RateLimiter(replay.min_size_to_sample, replay.samples_per_insert, replay.spi_tolerance)
+    return RateLimiter(replay.min_size_to_sample, replay.spi_limit, replay.spi_tolerance)
 
 
 def _try(acquire) -> bool:  # type: ignore[no-untyped-def]
@@ -38,7 +38,15 @@ def test_inserts_before_first_sample_is_what_the_limiter_admits(min_size: int, s
 
 
 def test_without_a_ratio_every_insert_is_admitted() -> None:
-    assert inserts_before_first_sample(ReplayConfig()) == float("inf")
+    assert inserts_before_first_sample(ReplayConfig(samples_per_insert=0.0)) == float("inf")
+
+
+def test_samples_per_insert_0_is_no_ratio_limit_and_a_recipe_can_say_so() -> None:
+    cfg = load_config(overrides=["replay.samples_per_insert=0"])
+    assert cfg.replay.samples_per_insert == 0.0 and cfg.replay.spi_limit is None
+    limiter = _limiter(cfg.replay)
+    for _ in range(cfg.replay.min_size_to_sample + 1000):
+        limiter.acquire_insert(0.0)
 
 
 def _run_fleet(replay: ReplayConfig, learner: LearnerConfig, inserts_wanted: int) -> int:
@@ -101,3 +109,13 @@ def test_the_first_update_waits_for_the_larger_of_the_two_thresholds():
     replay, learner = ReplayConfig(min_size_to_sample=64), LearnerConfig(min_replay_size=32)
     assert transitions_before_first_update(replay, learner) == 64
     assert transitions_before_first_update(ReplayConfig(min_size_to_sample=8), learner) == 32
+
+
+def test_a_prefill_from_recordings_is_refused_under_a_ratio_limit() -> None:
+    """learner --offline and up --from-recordings feed every recording before the learner's first sample; the
+    limiter admits inserts_before_first_sample of them, so a longer feed would wait forever."""
+    check_prefill(ReplayConfig(samples_per_insert=0.0))
+    paced = ReplayConfig(min_size_to_sample=4, samples_per_insert=2.0, spi_tolerance=8.0, max_batch_size=8)
+    with pytest.raises(ConfigError, match=r"admits 8 transitions before the learner's first sample"):
+        check_prefill(paced)
+    assert inserts_before_first_sample(paced) == 8

@@ -114,7 +114,9 @@ def _session(site: Path, identity: str):
 
 def test_replay_server_takes_each_actors_transitions_on_its_own_key_only(site: Path, tmp_path: Path) -> None:
     config = tmp_path / "run.toml"
-    config.write_text(f'run_id = "{RUN}"\n[workspace]\nresolution_m = 0.014\n[replay]\nmin_size_to_sample = 1\n')
+    # No learner samples here: unpaced.
+    config.write_text(f'run_id = "{RUN}"\n[workspace]\nresolution_m = 0.014\n[replay]\nmin_size_to_sample = 1\n'
+                      "samples_per_insert = 0.0\n")
     replay = Proc(_cli("replay", "--config", str(config), "--dir", str(tmp_path / "replay"), "--zenoh-config",
                        str(site / "replay.json5")), tmp_path / "replay.log")
     try:

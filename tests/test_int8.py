@@ -154,15 +154,15 @@ def test_overflowing_activations_fall_back_to_the_fp32_net(scenes):
 
 @needs_int8
 @pytest.mark.parametrize("cfg", [
-    ModelConfig(channels=8, residual_blocks=1, angle_bins=4, q_head_init="default", precision="int8"),
-    ModelConfig(channels=8, residual_blocks=1, angle_bins=16, q_head_init="default", precision="int8"),
+    ModelConfig(channels=8, residual_blocks=1, q_head_init="default", precision="int8"),
     ModelConfig(channels=8, residual_blocks=1, rotation_harmonics=2, q_head_init="default", precision="int8"),
-], ids=["4-bins-folded-head", "16-bins-fp32-tail", "two-harmonics"])
+    ModelConfig(channels=4, residual_blocks=1, rotation_harmonics=2, q_head_init="default", precision="int8"),
+], ids=["one-harmonic-folded-head", "two-harmonics-folded-head", "fp32-tail"])
 def test_int8_heads_match_the_reference(cfg, scenes):
-    """The heads folded into conv6 (fewer outputs than channels) or FastNet's tail (angle bins >= channels)."""
+    """The heads folded into conv6 (fewer outputs than channels) or FastNet's tail (as many outputs or more)."""
     model, eng = _engine(cfg, seed=4)
     try:
-        assert (eng.nets["pick"].head is None) == (cfg.angle_bins >= cfg.channels)
+        assert (eng.nets["pick"].head is None) == (1 + 2 * cfg.rotation_harmonics >= cfg.channels)
         for color, depth in scenes[:4]:
             fast = eng.infer(color, depth, ("push", "pick"))
             ref = reference_maps(model, color, depth, ("push", "pick"))

@@ -48,6 +48,7 @@ channels = {MODEL.channels}
 residual_blocks = {MODEL.residual_blocks}
 [replay]
 min_size_to_sample = 1
+samples_per_insert = 0.0  # unpaced: the learner's own cap (max_updates_per_insert) is what is tested
 snapshot_every_s = 0.0
 snapshot_every_inserts = 0
 [learner]

@@ -34,7 +34,8 @@ logger = logging.getLogger(__name__)
 
 SIZE = 64
 TASK = TaskConfig(kind="clutter", use_push=False)  # PickNet only
-MODEL = ModelConfig(channels=8, residual_blocks=1, precision="fp32")
+# The paper's rotation head, which the Budget below was measured with.
+MODEL = ModelConfig(channels=8, residual_blocks=1, rotation_harmonics=1, precision="fp32")
 REWARD = RewardConfig()
 EXPLORATION = ExplorationConfig()
 
@@ -128,8 +129,10 @@ def train(tmp_path, budget: Budget, seed: int = 0) -> Result:
     before = greedy_success(trainer, budget.eval_episodes, seed=10_000 + seed)
     rng = np.random.default_rng(seed)
     losses, train_success = [], []
+    # Unpaced: this loop sets its own schedule of updates per episode (budget.learner).
     store = ReplayStore(ReplayConfig(capacity_items=10_000, min_size_to_sample=1, fsync=False,
-                                     snapshot_every_s=0.0, snapshot_every_inserts=0), tmp_path / "replay")
+                                     samples_per_insert=0.0, snapshot_every_s=0.0, snapshot_every_inserts=0),
+                        tmp_path / "replay")
     try:
         client = SeededReplayClient(store, seed)
         for ep in range(budget.episodes):

@@ -296,6 +296,13 @@ def test_up_passes_recordings_to_the_learner(tmp_path: Path) -> None:
     ns = argparse.Namespace(name="off", runs_dir=str(tmp_path), task=None, goal_height=None, actors=0,
                             max_actions=0, resolution=None, robot=None, resume=False, stop_timeout=5.0,
                             config=None, overrides=[], from_recordings=[str(tmp_path)])
+    # The learner samples only once the recordings are fed: a ratio limit would hold the feed.
+    ns.overrides = ["replay.samples_per_insert=2.0"]
+    with pytest.raises(Exception, match=r"replay.samples_per_insert' = 2.0 .*admits \d+ transitions.*"
+                                        r"--set replay.samples_per_insert=0"):
+        prepare_run(ns)
+    assert not (tmp_path / "off").exists()
+    ns.overrides = ["replay.samples_per_insert=0"]
     run_dir, cfg = prepare_run(ns)
     specs = {s.name: s for s in build_specs(run_dir, cfg, ns, "tcp/127.0.0.1:1", "tcp/127.0.0.1:2", ActorLedger())}
     assert set(specs) == {"replay", "learner"}

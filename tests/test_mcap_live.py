@@ -49,6 +49,7 @@ residual_blocks = 1
 num_threads = 1
 [replay]
 min_size_to_sample = 1
+samples_per_insert = 0.0  # unpaced: recordings are fed before (or without) a learner sampling
 snapshot_every_s = 0.0
 snapshot_every_inserts = 0
 [learner]

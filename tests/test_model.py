@@ -25,8 +25,8 @@ from romannet.common.model import (
 )
 
 # PyTorch's Q-head init (the default "small" head starts within a few hundredths of 0), so Q maps differ
-# measurably between nets and comparisons at atol 1e-3 mean something.
-TORCH_INIT = ModelConfig(q_head_init="default")
+# measurably between nets and comparisons at atol 1e-3 mean something; the paper's rotation head (cos, sin).
+TORCH_INIT = ModelConfig(q_head_init="default", rotation_harmonics=1)
 
 PARAMETERS_PER_NET = 1_900_483  # GR-ConvNet with C = 32, 5 residual blocks, 1x1 heads (1 Q + 2 rotation)
 
@@ -41,6 +41,16 @@ def test_parameter_count_is_exact_per_net(model):
     for net in model.nets.values():
         assert parameter_count(net) == PARAMETERS_PER_NET
     assert parameter_count(model) == 3 * PARAMETERS_PER_NET
+
+
+def test_the_default_rotation_head_has_two_harmonics():
+    """The clutter recipe's pick head is the default: 4 rotation channels, a 1x1 conv of 2 more outputs."""
+    model = RoManNet()
+    assert model.cfg.rotation_harmonics == 2
+    assert parameter_count(model.nets["pick"]) == PARAMETERS_PER_NET + 2 * (32 + 1)
+    with torch.inference_mode():
+        q, rot = model.nets["pick"](torch.randn(1, 4, 32, 32))
+    assert rot.shape == (1, 4, 32, 32)
 
 
 def test_parameter_count_follows_config():
@@ -250,7 +260,8 @@ def test_two_harmonic_model_has_a_four_channel_rotation_head():
     assert q.shape == (1, 32, 32) and rot.shape == (1, 4, 32, 32)
     # its weights do not load into a one-harmonic model (a clear error, not a silent reshape)
     with pytest.raises(DecodeError):
-        load_tensors(RoManNet(ModelConfig(channels=8, residual_blocks=1)), state_dict_to_tensors(model))
+        load_tensors(RoManNet(ModelConfig(channels=8, residual_blocks=1, rotation_harmonics=1)),
+                     state_dict_to_tensors(model))
 
 
 def test_small_q_head_init_scales_the_q_head_and_keeps_the_rest_of_the_init():

@@ -304,8 +304,8 @@ def test_init_from_accepts_runs_and_checkpoints_exactly(run):
         assert all(torch.equal(tensors[k], v) for k, v in trainer.state_tensors().items())
     # Inference settings may differ from the source's; the architecture may not.
     read_init_weights(run_dir, dataclasses.replace(cfg.model, precision="fp32", num_threads=2))
-    with pytest.raises(RomannetError, match="rotation_harmonics=1, this run has rotation_harmonics=2"):
-        read_init_weights(run_dir, dataclasses.replace(cfg.model, rotation_harmonics=2))
+    with pytest.raises(RomannetError, match="rotation_harmonics=2, this run has rotation_harmonics=1"):
+        read_init_weights(run_dir, dataclasses.replace(cfg.model, rotation_harmonics=1))
 
 
 class _EmptyReplay:

@@ -213,7 +213,8 @@ def test_romannet_actor_runs_a_real_robot_process_against_a_replay_server(tmp_pa
     w.save(tmp_path / "world.json")
     config = write_toml(load_config(None, [*BASE, f"robot.bins_xy_m={BINS}", 'run_id="real"',
                                            f'robot.calibration_file="{calibration}"', "replay.fsync=false",
-                                           "replay.min_size_to_sample=1", "actor.spool_fsync=false"]),
+                                           "replay.min_size_to_sample=1", "replay.samples_per_insert=0",
+                                           "actor.spool_fsync=false"]),  # no learner samples: unpaced
                         tmp_path / "robot.toml")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     env = {**fake_driver_env(tmp_path / "world.json"), "OMP_NUM_THREADS": "1"}

@@ -263,7 +263,7 @@ def test_limiter_counts_batches_reverb_style() -> None:
 @pytest.mark.parametrize(("kwargs", "field"), [
     (dict(samples_per_insert=4.0, spi_tolerance=10.0, max_batch_size=32), "replay.spi_tolerance"),
     (dict(min_size_to_sample=2000, capacity_items=1000), "replay.min_size_to_sample"),
-    (dict(samples_per_insert=0.0), "replay.samples_per_insert"),
+    (dict(samples_per_insert=-1.0), "replay.samples_per_insert"),
     (dict(alpha=-1.0), "replay.alpha"),
 ])
 def test_deadlocking_or_invalid_configs_are_refused(kwargs: dict, field: str) -> None:

@@ -39,6 +39,8 @@ CONFIG_TOML = f"""run_id = "{RUN}"
 resolution_m = 0.014
 [replay]
 min_size_to_sample = 1
+samples_per_insert = 0.0  # no learner samples here: unpaced
+max_batch_size = 32  # the restart check samples 32 items at once
 snapshot_every_s = 0.0
 snapshot_every_inserts = 0
 top_k = 1000

@@ -202,11 +202,13 @@ def _check_run(up: Up, expected_actions: int, learning: bool = True) -> dict[str
     return summary
 
 
-# The recipes' pacing (configs/experiments/*.toml): the replay server holds an insert's acknowledgement while
-# the learner is more than a few samples behind, and a 2-item spool makes the actor wait for it. Unpaced, a
-# fast machine's actors finished all 40 actions before the learner's second weights version (CI, 2026-12-02).
+# The defaults' pacing (the clutter recipe's): the replay server holds an insert's acknowledgement while the
+# learner is more than a few samples behind, and a 2-item spool makes the actor wait for it. Unpaced, a fast
+# machine's actors finished all 40 actions before the learner's second weights version.
 PACED = ["replay.samples_per_insert=2.0", "replay.max_batch_size=4", "replay.spi_tolerance=8.0",
          "actor.spool_max_items=2"]
+# Unpaced, with a deep spool: the actors act on through a replay outage.
+UNPACED = ["replay.samples_per_insert=0", "actor.spool_max_items=2000"]
 
 
 def test_up_runs_the_fleet_to_max_actions(tmp_path: Path, ups: list[Up]) -> None:
@@ -221,7 +223,7 @@ def test_up_runs_the_fleet_to_max_actions(tmp_path: Path, ups: list[Up]) -> None
 
 
 def test_a_run_too_short_to_train_says_so_first_and_in_its_summary(tmp_path: Path, ups: list[Up]) -> None:
-    up = Up(tmp_path, "short", 4, "--set", "learner.min_replay_size=8")
+    up = Up(tmp_path, "short", 4, "--set", "learner.min_replay_size=8", "--set", "replay.min_size_to_sample=8")
     ups.append(up)
     assert up.wait() == 0, up.output()
     out = up.output()
@@ -237,7 +239,7 @@ def test_replay_outages_mid_run_lose_and_duplicate_nothing(tmp_path: Path, ups: 
     recovers from its log). Actors keep acting on their spools throughout. The run has no action limit, so
     the outages always fall mid-run however fast the machine; it ends with Ctrl-C once the restarted server
     has acknowledged more transitions."""
-    up = Up(tmp_path, "outage", 0)
+    up = Up(tmp_path, "outage", 0, *[arg for s in UNPACED for arg in ("--set", s)])
     ups.append(up)
 
     def acked() -> int:

@@ -245,6 +245,26 @@ def test_prepare_run_flags_fresh_and_resume(tmp_path: Path) -> None:
         prepare_run(args("--actors", "3", "--max-actions", "2"))
 
 
+def test_resume_of_a_run_saved_before_a_default_changed_keeps_what_it_ran_with(tmp_path: Path) -> None:
+    """A run's config.toml written while no ratio limit was an unwritten unset value, and before the rotation
+    head had a second harmonic, resumes unpaced with one harmonic, not with today's defaults."""
+    import tomli_w
+
+    from romannet.cli import build_parser
+    from romannet.common.config import Config, load_config
+    from romannet.common.configbase import to_dict
+    from romannet.rundir import prepare_run
+
+    old = to_dict(Config(run_id="r1"))
+    del old["model"]["rotation_harmonics"], old["replay"]["samples_per_insert"]
+    (tmp_path / "r1").mkdir()
+    (tmp_path / "r1" / "config.toml").write_text(tomli_w.dumps(old))
+    ns = build_parser().parse_args(["up", "--runs-dir", str(tmp_path), "--name", "r1", "--resume", "--actors", "1"])
+    _, cfg = prepare_run(ns)
+    assert cfg.replay.spi_limit is None and cfg.model.rotation_harmonics == 1
+    assert load_config(tmp_path / "r1" / "config.toml") == cfg  # written out in full, as it ran
+
+
 def test_resume_takes_the_last_launchs_fleet_unless_given(tmp_path: Path) -> None:
     from romannet.cli import build_parser
     from romannet.common.errors import RomannetError

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import torch
 
-from romannet.common.config import load_config
+from romannet.common.config import load_saved_config
 from romannet.common.episode_file import episode_paths
 from romannet.common.model import RoManNet, decode_rotation, load_tensors, preprocess
 from romannet.common.wire_messages import TransitionMsg
@@ -112,7 +112,7 @@ def probe_run(run: Path, checkpoint: Path | None, episodes: int, min_height_m: f
     ckpt = checkpoint if checkpoint is not None else latest_checkpoint(run)
     if ckpt is None:
         raise FileNotFoundError(f"no checkpoint in {run / 'checkpoints'}")
-    cfg = load_config(run / "config.toml")
+    cfg = load_saved_config(run / "config.toml")
     model = RoManNet(cfg.model)
     load_tensors(model, read_verified(ckpt).model_tensors())  # verified, no pickle: what eval loads
     model.eval()

@@ -203,16 +203,16 @@ class CheckpointPlan:
 
 def plan_checkpoint(args: argparse.Namespace, path: Path) -> CheckpointPlan:
     """Resolve a checkpoint, load and check its config, and plan its runs; RomannetError on bad input."""
-    from romannet.common.config import load_config, without_retired
+    from romannet.common.config import as_saved, load_config, load_saved_config
 
     ckpt, run_dir = resolve_checkpoint(path)
     config_path = Path(args.config) if args.config else run_dir / "config.toml"
     if not config_path.is_file():
         raise RomannetError(f"{config_path} does not exist: pass --config with the config the checkpoint was "
                             "trained with")
-    cfg = load_config(config_path, args.overrides)
+    cfg = (load_config if args.config else load_saved_config)(config_path, args.overrides)
     state = json.loads((ckpt / "state.json").read_text())
-    trained_model = without_retired(state.get("config", {})).get("model")
+    trained_model = as_saved(state.get("config", {})).get("model")
     if trained_model is not None and trained_model != json.loads(json.dumps(_as_dict(cfg.model))):
         raise RomannetError(f"{ckpt} was trained with model config {trained_model}; the config says "
                             f"{_as_dict(cfg.model)}")

@@ -137,7 +137,7 @@ def build_plan(args: argparse.Namespace) -> SweepPlan:
 
 def _check_existing_run(plan: SweepPlan, job: RunJob) -> None:
     """A run directory already there must be this sweep's run: the config its recipe gives now."""
-    from romannet.common.config import load_config
+    from romannet.common.config import load_config, load_saved_config
     from romannet.common.configbase import to_dict
 
     from .plan import first_difference
@@ -149,7 +149,7 @@ def _check_existing_run(plan: SweepPlan, job: RunJob) -> None:
                                 "--runs-dir")
         return
     try:
-        there = to_dict(load_config(saved))
+        there = to_dict(load_saved_config(saved))
     except RomannetError as err:
         raise RomannetError(f"{saved}: {err}") from None
     here = to_dict(load_config(job.recipe, [*plan.run_overrides(job), f'run_id="{job.name}"']))
