@@ -28,12 +28,12 @@ class ReplayConfig:
     beta0: float = 0.5
     beta_anneal_updates: int = 100_000  # sampled batches (learner updates) until beta reaches 1
     max_batch_size: int = 8  # largest batch one sample call may ask for (the learner's batch_size is 4)
-    # Rate limiting (Reverb semantics). The defaults pace actors and a learner sharing one small box at VPG's
-    # two trained transitions per action: an insert's ack waits while the learner is more than a few updates
-    # behind, and the actor's small spool (actor.spool_max_items) makes it wait, so learning per action does
-    # not depend on the machine's speed.
+    # Rate limiting (Reverb semantics). The defaults pace actors and a learner sharing one small box at four
+    # trained transitions per action (twice VPG's; it beat two on the 3-seed clutter sweep, docs/results.md):
+    # an insert's ack waits while the learner is more than a few updates behind, and the actor's small spool
+    # (actor.spool_max_items) makes it wait, so learning per action does not depend on the machine's speed.
     min_size_to_sample: int = 64  # items in the buffer before any sample is served
-    samples_per_insert: float = 2.0  # 0 = no ratio limit (TOML has no null to say "unset")
+    samples_per_insert: float = 4.0  # 0 = no ratio limit (TOML has no null to say "unset")
     spi_tolerance: float = 8.0  # Reverb's error_buffer: allowed drift of samples - spi * inserts
     # Durability.
     segment_max_bytes: int = 256 * (1 << 20)  # log segment rotation size

@@ -197,7 +197,7 @@ def test_live_serves_each_actors_steps_as_they_are_written(tmp_path: Path, proto
 
 UP_SETS = ["model.channels=4", "model.residual_blocks=1", "model.num_threads=1", "learner.num_threads=1",
            'learner.precision="fp32"', "learner.batch_size=2", "learner.min_replay_size=4",
-           "replay.min_size_to_sample=1", "sim.num_objects=3"]
+           "replay.min_size_to_sample=2", "sim.num_objects=3"]
 
 
 def test_up_foxglove_serves_the_actor_live(tmp_path: Path) -> None:

@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parent.parent
 RECIPE = REPO / "configs" / "experiments" / "stacking.toml"
 TINY = ["model.channels=4", "model.residual_blocks=1", "model.num_threads=1", "learner.num_threads=1",
         'learner.precision="fp32"', "learner.max_grad_norm=10", "learner.batch_size=2", "learner.min_replay_size=4",
-        "replay.min_size_to_sample=1", 'sim.robot="gripper"', "workspace.resolution_m=0.007",
+        "replay.min_size_to_sample=2", 'sim.robot="gripper"', "workspace.resolution_m=0.007",
         "task.goal_stack_height=2", "sim.num_stacking_cubes=3", "camera.width_px=160", "camera.height_px=120",
         "camera.fx_px=154.655", "camera.fy_px=154.655", "camera.cx_px=80.0", "camera.cy_px=60.0"]
 MAX_ACTIONS = 60  # the gripper makes ~10 actions/s here: room to interrupt the run before its end

@@ -34,7 +34,7 @@ from romannet.up import thread_plan
 
 SETS = ["model.channels=4", "model.residual_blocks=1", "model.num_threads=1", "learner.num_threads=1",
         'learner.precision="fp32"', "learner.max_grad_norm=10", "learner.batch_size=2", "learner.min_replay_size=4",
-        "learner.publish_every_updates=2", "replay.min_size_to_sample=1", "sim.num_objects=3"]
+        "learner.publish_every_updates=2", "replay.min_size_to_sample=2", "sim.num_objects=3"]
 RUN_TIMEOUT_S = 180
 
 
