@@ -49,14 +49,15 @@ class Budget:
     diverges depends on the CPU's float kernels (on an Intel Xeon seed 0 reached 100 %; on an AMD EPYC seeds
     0 and 1 ended at 0 %, one with non-finite Q maps, and at lr 5e-4 two of seeds 0-4 still diverged).
     Clipping the gradient norm at 10 trains every seed measured: greedy success 98-100 % for seeds 0-4 on the
-    AMD box (from 0-10 %), ~15 s each. fp32 here: at 8 channels bf16 is slower.
+    AMD box (from 0-10 %), ~15 s each. fp32 here: at 8 channels bf16 is slower. One thread: an 8-channel net
+    gains nothing from two, and two wait on each other when other work holds a core (10x slower steps).
     """
 
     episodes: int = 150
     updates_per_episode: int = 2
     eval_episodes: int = 50
     learner: LearnerConfig = LearnerConfig(lr=1e-3, max_grad_norm=10.0, batch_size=4, min_replay_size=8,
-                                           precision="fp32")
+                                           precision="fp32", num_threads=1)
 
 
 def scene(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -124,6 +125,14 @@ class Result:
 
 def train(tmp_path, budget: Budget, seed: int = 0) -> Result:
     """Train within the budget and evaluate the greedy policy before and after."""
+    threads = torch.get_num_threads()  # the Trainer sets budget.learner.num_threads process-wide
+    try:
+        return _train(tmp_path, budget, seed)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train(tmp_path, budget: Budget, seed: int) -> Result:
     torch.manual_seed(seed)
     trainer = Trainer(MODEL, budget.learner, REWARD, TASK, seed=seed, exploration_cfg=EXPLORATION)
     before = greedy_success(trainer, budget.eval_episodes, seed=10_000 + seed)
