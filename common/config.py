@@ -34,6 +34,7 @@ RETIRED: dict[str, Any] = {
     "replay.group_commit": True,
     "learner.augment_rotation": False,
     "model.angle_bins": 0,
+    "learner.rotation_failure_weight": 0.0,
 }
 # Fields a saved config may lack, and what it ran with then: it was saved before the field existed, or while
 # samples_per_insert's "no ratio limit" was an unset value that TOML cannot write. A saved config fills them in

@@ -58,12 +58,6 @@ class LearnerConfig:
     # without diverging.
     max_grad_norm: float = 0.0
     rotation_loss_weight: float = 1.0  # weight of the rotation head's squared error beside the Q loss
-    # Weight of a failed action's rotation target, the opposite of its angle's encoding (a failed grasp's
-    # angle is not a target to imitate; learner.targets.rotation_sign_weight); 0 = failures do not train the
-    # head. w moves the head toward angles that succeed more often than w / (1 + w) and away from the rest,
-    # rather than toward whatever angles the policy tried and sometimes got through (1/3: away from angles
-    # that succeed less than one time in four).
-    rotation_failure_weight: float = 0.0
     # Where a success's angle trains the rotation head: "pixel" = the executed pixel only; "kernel" = every
     # pixel of the Q label's support (averaged), the executed angle being the target for the action poses
     # around it, as GR-ConvNet trains its angle maps over a grasp's region rather than one pixel.
@@ -121,9 +115,6 @@ class LearnerConfig:
                 self.target_sync_every_updates, "must be >= 1")
         require(0.0 <= self.rotation_loss_weight <= 100.0, "learner.rotation_loss_weight",
                 self.rotation_loss_weight, "must be in [0, 100] (0 = the rotation head is not trained)")
-        require(math.isfinite(self.rotation_failure_weight) and 0.0 <= self.rotation_failure_weight <= 10.0,
-                "learner.rotation_failure_weight", self.rotation_failure_weight,
-                "must be in [0, 10] (0 = failed actions do not train the rotation head)")
         require(self.train_crop_px == 0 or (self.train_crop_px >= 32 and self.train_crop_px % 4 == 0),
                 "learner.train_crop_px", self.train_crop_px,
                 "must be 0 (the whole heightmap) or a multiple of 4 from 32 (the nets' stride; 128 holds their "

@@ -15,7 +15,7 @@ label 0 on the whole support.
 Rotation target: on successful actions the rotation head is trained at the executed pixel toward
 encode_angle(theta): (cos theta, sin theta) for push, (cos 2 theta, sin 2 theta) for pick/place, plus the
 second harmonic with model.rotation_harmonics = 2 (common/model.py says why); rotation_targets gives a
-batch's signed targets and weights (rotation_sign_weight).
+batch's targets and weights (failures weigh 0).
 
 Opposite orientation (paper: "for an antipodal gripper, the pick and place motion primitives are symmetrical
 around 0-180 degrees, thus we can pass the gradients for the opposite orientation as well"). VPG's nets
@@ -117,29 +117,10 @@ def rotation_target(angle_rad: float, primitive: str, harmonics: int = 1) -> tup
     return encode_angle(float(angle_rad), primitive, harmonics)
 
 
-def rotation_sign_weight(success: bool, failure_weight: float) -> tuple[float, float]:
-    """(sign, weight) of one action's rotation target: the head regresses sign * rotation_target, weighted.
-
-    A success: (+1, 1), the executed angle is imitated. A failure, whose angle is not a target to imitate:
-    (-1, failure_weight), the target is the opposite of the executed angle's encoding (for a pick's second
-    harmonic, 4 theta + pi: the angle 45 degrees away), 0 = not trained (the default).
-    Why: the head's expected target is then E[(s - b) e^{i k theta}] / E[...] with b = w / (1 + w), i.e. it
-    points toward angles that succeed more often than b and away from those that succeed less, whichever
-    angles the policy tried; imitating successes alone (b = 0) points toward the policy's own angles even
-    where they succeed rarely.
-    """
-    if not (math.isfinite(failure_weight) and failure_weight >= 0.0):
-        raise ValueError(f"failure_weight = {failure_weight!r} must be a non-negative number")
-    if success:
-        return 1.0, 1.0
-    return -1.0, float(failure_weight)
-
-
-def rotation_targets(angles_rad: Sequence[float], successes: Sequence[bool], primitive: str, harmonics: int,
-                     failure_weight: float) -> tuple[Tensor, Tensor]:
+def rotation_targets(angles_rad: Sequence[float], successes: Sequence[bool], primitive: str,
+                     harmonics: int) -> tuple[Tensor, Tensor]:
     """(targets float32 (k, 2 * harmonics), weights float32 (k,)) of k actions of one primitive: row i is
-    sign_i * rotation_target(angle_i), weighted by weight_i, with (sign_i, weight_i) from rotation_sign_weight."""
-    signed = [rotation_sign_weight(ok, failure_weight) for ok in successes]
-    targets = torch.tensor([[sign * v for v in rotation_target(a, primitive, harmonics)]
-                            for a, (sign, _) in zip(angles_rad, signed, strict=True)])
-    return targets, torch.tensor([w for _, w in signed], dtype=torch.float32)
+    rotation_target(angle_i), weighted 1 for a success and 0 for a failure (a failed action's angle is not a
+    target to imitate, and its opposite measured worse: docs/journal.md)."""
+    targets = torch.tensor([rotation_target(a, primitive, harmonics) for a in angles_rad], dtype=torch.float32)
+    return targets, torch.tensor([1.0 if ok else 0.0 for ok in successes], dtype=torch.float32)

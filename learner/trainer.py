@@ -7,8 +7,7 @@ One `train_step(batch)`:
 2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel.
 3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net; the
    loss (learner/losses.py, whose docstring has the formulas): the Huber loss over each label's support
-   + the rotation loss on successes (and on failures toward the opposite angle with
-   learner.rotation_failure_weight: at the executed pixel, or over the support with learner.rotation_support
+   + the rotation loss on successes (at the executed pixel, or over the support with learner.rotation_support
    = "kernel") + learner.executed_pixel_weight x the paper's Huber(Q(s_t, a_t) - Y_t) at the executed pixel,
    times the item's importance-sampling weight, averaged over the batch. Only the executed
    primitives' nets get gradients; the others keep `.grad is None`, so SGD skips them entirely (no weight
@@ -332,7 +331,7 @@ class Trainer:
         is_w = torch.tensor(is_weights, device=self.device, dtype=torch.float32)
         q_losses = q_loss(q, g.label, g.support, cfg.huber_delta, cfg.loss_reduction)
         rho, rho_w = rotation_targets([t.action.angle_rad for t in ts], [t.success for t in ts], p,
-                                      self.model.cfg.rotation_harmonics, cfg.rotation_failure_weight)
+                                      self.model.cfg.rotation_harmonics)
         rho, rho_w = rho.to(self.device), rho_w.to(self.device)
         rot_losses = (rotation_kernel_loss(rot, rho, rho_w, g.support) if cfg.rotation_support == "kernel"
                       else rotation_pixel_loss(rot[ar, :, g.rows, g.cols], rho, rho_w))

@@ -85,52 +85,16 @@ def test_push_is_directional():
     assert c == pytest.approx(-c2) and s == pytest.approx(-s2)
 
 
-def test_rotation_sign_weight_imitates_successes_and_avoids_failures_when_weighted():
-    assert T.rotation_sign_weight(True, 0.0) == (1.0, 1.0)
-    assert T.rotation_sign_weight(True, 0.5) == (1.0, 1.0)
-    assert T.rotation_sign_weight(False, 0.0) == (-1.0, 0.0)  # the default: failures do not train
-    assert T.rotation_sign_weight(False, 0.5) == (-1.0, 0.5)
-    for bad in (-0.1, math.nan, math.inf):
-        with pytest.raises(ValueError, match="non-negative"):
-            T.rotation_sign_weight(True, bad)
-
-
-def test_rotation_targets_sign_and_weight_each_action():
-    # A pick at 0 that succeeded: (cos 0, sin 0); one at pi/4 that failed, failures weighted 0.5: the opposite
-    # of (cos pi/2, sin pi/2).
-    targets, weights = T.rotation_targets([0.0, math.pi / 4], [True, False], "pick", 1, 0.5)
+def test_rotation_targets_imitate_successes_only():
+    # A pick at 0 that succeeded: (cos 0, sin 0), weight 1; one at pi/4 that failed: its encoding, weight 0.
+    targets, weights = T.rotation_targets([0.0, math.pi / 4], [True, False], "pick", 1)
     assert targets.dtype == weights.dtype == torch.float32 and targets.shape == (2, 2)
-    np.testing.assert_allclose(targets.numpy(), [[1.0, 0.0], [0.0, -1.0]], atol=1e-7)
-    assert weights.tolist() == [1.0, 0.5]
-    # a failed push weighted 1: the opposite of its angle's encoding; two harmonics give four values.
-    targets, weights = T.rotation_targets([math.pi / 2], [False], "push", 2, 1.0)
-    np.testing.assert_allclose(targets.numpy(), [[0.0, -1.0, 1.0, 0.0]], atol=1e-7)
+    np.testing.assert_allclose(targets.numpy(), [[1.0, 0.0], [0.0, 1.0]], atol=1e-7)
+    assert weights.tolist() == [1.0, 0.0]
+    # a push at pi/2 with two harmonics: four values, (cos, sin) of theta and of 2 theta.
+    targets, weights = T.rotation_targets([math.pi / 2], [True], "push", 2)
+    np.testing.assert_allclose(targets.numpy(), [[0.0, 1.0, -1.0, 0.0]], atol=1e-7)
     assert weights.tolist() == [1.0]
-    # the default: failures do not train the head (weight 0).
-    assert T.rotation_targets([0.1], [False], "place", 1, 0.0)[1].tolist() == [0.0]
-
-
-def test_weighted_failures_turn_the_head_from_the_policys_own_angle_toward_the_one_that_succeeds():
-    """The weighted least-squares optimum of the signed targets for a pick that succeeds 45 % of the time
-    square to a cube's faces and 15 % at 30 degrees off them (as stack-h4-r2's greedy picks did), tried 3x as
-    often at 30 degrees. Imitating successes alone: 45 successes at each, the head points half way (15 deg)
-    and the policy keeps its bad angle. With failures weighted 1/3 (baseline 0.25) the 30-degree failures push
-    it past the faces (to -9 deg); tried at +-30 degrees alike, it points at the faces exactly."""
-
-    def optimum(w: float, tried: dict[float, tuple[int, float]]) -> float:
-        num, den = np.zeros(4), 0.0
-        for theta, (n, p) in tried.items():
-            for success, share in ((True, p), (False, 1 - p)):
-                sign, weight = T.rotation_sign_weight(success, w)
-                num += n * share * weight * sign * np.asarray(T.rotation_target(math.radians(theta), "pick", 2))
-                den += n * share * weight
-        r = num / den
-        return math.degrees(math.atan2(r[3], r[2]) / 4)  # the 4-theta harmonic's angle to the faces
-
-    one_sided = {0.0: (100, 0.45), 30.0: (300, 0.15)}
-    assert optimum(0.0, one_sided) == pytest.approx(15.0)
-    assert optimum(1 / 3, one_sided) == pytest.approx(-9.2, abs=0.1)
-    assert optimum(1 / 3, {0.0: (100, 0.45), 30.0: (150, 0.15), -30.0: (150, 0.15)}) == pytest.approx(0.0, abs=1e-6)
 
 
 def test_return_range_and_clipping_the_bootstrap():

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import _learner_helpers as H
@@ -254,46 +253,6 @@ def test_rotation_support_kernel_trains_the_angle_around_the_executed_pixel():
     assert at_pixel < 0.25 * results["pixel"][0][1] and ring_pixel > 0.8 * ring0, results  # "pixel": there only
     with pytest.raises(ConfigError, match="'pixel', 'kernel'"):
         load_config(overrides=['learner.rotation_support="everywhere"'])
-
-
-def test_rotation_failure_weight_turns_the_angle_away_from_a_failed_pick():
-    """learner.rotation_failure_weight: a failed pick trains the rotation head toward the opposite of its
-    angle's encoding (45 degrees away in the 4-theta harmonic); 0 (the default) leaves the angle to the Q
-    loss's shared features."""
-    from romannet.common.config import load_config
-    from romannet.common.errors import ConfigError
-    from romannet.common.model import decode_rotation
-    from romannet.learner.targets import rotation_target
-
-    theta, row, col = 0.3, 12, 14
-    item = (H.transition(primitive="pick", seed=5, row=row, col=col, angle_rad=theta, success=False, reward=0.0,
-                         done=False), 1.0, 0)
-    away = -torch.tensor(rotation_target(theta, "pick", 2))
-
-    def at_pixel(t):
-        t.model.eval()
-        with torch.no_grad():
-            x = preprocess_batch(item[0].color_before[None], item[0].depth_before[None])
-            rot = t.model.nets["pick"](x)[1][0, :, row, col]
-        t.model.train()
-        return rot
-
-    moved = {}
-    for w in (0.0, 1.0):
-        t = H.trainer(rotation_failure_weight=w, lr=0.002, loss_reduction="mean",
-                      model=dataclasses.replace(H.SMALL_MODEL, rotation_harmonics=2))
-        before = at_pixel(t)
-        for _ in range(30):
-            t.train_step([item])
-        after = at_pixel(t)
-        moved[w] = (float(((before - away) ** 2).sum()), float(((after - away) ** 2).sum()), after)
-    assert moved[1.0][1] < 0.25 * moved[1.0][0], moved
-    assert moved[0.0][1] > 0.6 * moved[0.0][0], moved  # the default does not train it
-    decoded = float(decode_rotation(moved[1.0][2].numpy(), "pick"))
-    off = abs(math.remainder(decoded - theta, math.pi / 2))
-    assert off > math.radians(35), math.degrees(decoded)  # the square grasp's other diagonal, ~45 deg away
-    with pytest.raises(ConfigError, match=r"\[0, 10\]"):
-        load_config(overrides=["learner.rotation_failure_weight=-1"])
 
 
 def test_executed_pixel_weight_adds_the_papers_loss_at_the_executed_pixel():
