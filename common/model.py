@@ -62,8 +62,8 @@ class GlobalContext(nn.Module):
     """What the whole scene holds, added to every position of the bottleneck: (B, 4, H, W) → (B, 4C, 1, 1).
 
     Why: the trunk's receptive field is 112 px (22 cm at 2 mm per pixel), so a pixel's Q cannot see a stack
-    further away; the stacking policies placed 29 % of their greedy places onto a lower cube while a taller
-    stack stood, a median 17 cm away (docs/results.md). VPG's and SPOT's DenseNet trunks see the whole image.
+    further away; 38 % of the stacking policies' greedy places went onto a lower cube while a taller stack
+    stood, its nearest edge a median 10.5 cm away (docs/results.md). VPG's and SPOT's DenseNet trunks see the whole image.
     The branch reads the whole heightmap at a quarter of its resolution (three stride-2 3×3 convs, then the
     mean and max over positions); its last 1×1 conv starts at zero, so a fresh net is the plain GR-ConvNet.
     It always reads the whole heightmap, also when the learner trains the trunk on a window (learner/crop.py).

@@ -238,6 +238,36 @@ def test_cubes_under_an_action_counts_levels_of_the_tallest_point_near_its_pixel
         cubes_under(hm, 0, 0, 0.0, 2)
 
 
+def test_place_geometry_measures_the_offset_from_a_top_and_the_distance_to_a_taller_stack():
+    from romannet.analyse.stack_actions import distance_to_height_px, top_offset_px
+
+    hm = np.zeros((60, 60), np.float32)
+    hm[10:20, 10:20] = 0.05  # a lone cube, centre (14.5, 14.5)
+    hm[40:50, 40:50] = 0.10  # a stack of two, centre (44.5, 44.5)
+    assert top_offset_px(hm, 14, 14, 1, 0.05) == pytest.approx(np.hypot(0.5, 0.5))
+    assert top_offset_px(hm, 44, 47, 2, 0.05) == pytest.approx(np.hypot(0.5, 2.5))
+    assert top_offset_px(hm, 5, 5, 1, 0.05) == pytest.approx(np.hypot(9.5, 9.5))  # beside the lone cube
+    assert top_offset_px(hm, 14, 14, 3, 0.05) is None and top_offset_px(hm, 14, 14, 0, 0.05) is None
+    assert distance_to_height_px(hm, 14, 14, 2, 0.05) == pytest.approx(np.hypot(26, 26))
+    assert distance_to_height_px(hm, 45, 45, 2, 0.05) == 0.0
+    assert distance_to_height_px(hm, 14, 14, 3, 0.05) is None
+
+
+def test_stack_actions_summary_gives_place_offsets_and_places_onto_a_lower_cube():
+    from romannet.analyse.stack_actions import summarize
+
+    def place(stack, under, success, off, far=None):
+        return {"primitive": "place", "stack": stack, "under": under, "success": success, "explored": False,
+                "top_offset_cm": off, "to_stack_cm": far}
+
+    out = summarize([place(2, 2, True, 1.0), place(2, 2, True, 3.0), place(2, 2, False, 4.0),
+                     place(2, 1, False, 0.5, far=12.0), place(3, 1, False, 0.7, far=6.0), place(1, 0, False, None)])
+    assert out["greedy places: offset from the centre of the top under them (cm)"]["stack 2, on 2"] == {
+        "succeeded": {"places": 2, "median cm": 2.0}, "failed": {"places": 1, "median cm": 4.0}}
+    assert out["greedy places onto a lower cube while a stack of 2+ stood"] == {
+        "places": 2, "median distance to the stack (cm)": 9.0, "share beyond 10 cm": 0.5}
+
+
 def test_stack_actions_summary_counts_picks_off_and_places_on_a_stack_top():
     from romannet.analyse.stack_actions import summarize
 

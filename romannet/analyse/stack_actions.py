@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from romannet.common.stack import stack_height
@@ -37,19 +38,48 @@ def cubes_under(depth_hm: np.ndarray, row: int, col: int, cube_size_m: float, ra
     return max(0, int(np.rint(tallest / cube_size_m)))
 
 
+def top_offset_px(depth_hm: np.ndarray, row: int, col: int, level: int, cube_size_m: float) -> float | None:
+    """Distance (px) from a pixel to the centre of the cube top at `level` cubes nearest it: the connected
+    pixels within a quarter cube of that height; None when no top stands at that level."""
+    if level < 1:
+        return None
+    depth = np.nan_to_num(np.asarray(depth_hm, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    count, labels = cv2.connectedComponents((np.abs(depth - level * cube_size_m) < cube_size_m / 4).astype(np.uint8))
+    if count < 2:
+        return None
+    pixels = np.argwhere(labels > 0)
+    nearest = pixels[np.hypot(pixels[:, 0] - row, pixels[:, 1] - col).argmin()]
+    top = np.argwhere(labels == labels[tuple(nearest)])
+    return float(np.hypot(*(top.mean(0) - (row, col))))
+
+
+def distance_to_height_px(depth_hm: np.ndarray, row: int, col: int, cubes: int, cube_size_m: float) -> float | None:
+    """Distance (px) from a pixel to the nearest pixel at least `cubes` cubes high; None when there is none."""
+    depth = np.nan_to_num(np.asarray(depth_hm, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    tall = np.argwhere(depth > (cubes - 0.5) * cube_size_m)
+    return float(np.hypot(tall[:, 0] - row, tall[:, 1] - col).min()) if len(tall) else None
+
+
 def episode_actions(path: Path, radius_m: float) -> list[dict]:
     """{primitive, explored, success, stack, under} of every recorded pick and place of one episode file."""
     config_toml, transitions = recorded_transitions(path)
     cube_m = recorded_number(path, config_toml, "task", "cube_size_m")
     radius_px = int(round(radius_m / recorded_number(path, config_toml, "workspace", "resolution_m")))
+    cm_per_px = 100 * recorded_number(path, config_toml, "workspace", "resolution_m")
     out = []
     for t in transitions:
         a = t.action
         if a.primitive not in ("pick", "place"):
             continue
-        out.append({"primitive": a.primitive, "explored": bool(a.explored), "success": bool(t.success),
-                    "stack": stack_height(t.depth_before, cube_m),
-                    "under": cubes_under(t.depth_before, a.row, a.col, cube_m, radius_px)})
+        stack, under = stack_height(t.depth_before, cube_m), cubes_under(t.depth_before, a.row, a.col, cube_m, radius_px)
+        item = {"primitive": a.primitive, "explored": bool(a.explored), "success": bool(t.success),
+                "stack": stack, "under": under}
+        if a.primitive == "place":
+            off = top_offset_px(t.depth_before, a.row, a.col, under, cube_m)
+            far = distance_to_height_px(t.depth_before, a.row, a.col, stack, cube_m) if 0 < under < stack else None
+            item["top_offset_cm"] = None if off is None else off * cm_per_px
+            item["to_stack_cm"] = None if far is None else far * cm_per_px
+        out.append(item)
     return out
 
 
@@ -84,6 +114,28 @@ def summarize(actions: Iterable[dict]) -> dict:
         "picks elsewhere succeeded": sum(a["success"] for a in picks if a["under"] < a["stack"]),
         "places": len(places), "places on a stack top": len(on_top),
         "places that raised the stack": sum(a["success"] for a in places)}
+    out["greedy places: offset from the centre of the top under them (cm)"] = place_offsets(
+        [a for a in actions if a["primitive"] == "place" and not a["explored"]])
+    lower = [a["to_stack_cm"] for a in places if a.get("to_stack_cm") is not None]
+    out["greedy places onto a lower cube while a stack of 2+ stood"] = {
+        "places": len(lower), "median distance to the stack (cm)": _median(lower),
+        "share beyond 10 cm": round(float(np.mean(np.array(lower) > 10)), 3) if lower else None}
+    return out
+
+
+def _median(values: list[float]) -> float | None:
+    return round(float(np.median(values)), 2) if values else None
+
+
+def place_offsets(places: list[dict]) -> dict:
+    """{'stack S, on U': {succeeded/failed: count and median top_offset_cm}} of places with a measured offset."""
+    out: dict = {}
+    for s, u in sorted({(a["stack"], a["under"]) for a in places if a.get("top_offset_cm") is not None}):
+        group = [a for a in places if (a["stack"], a["under"]) == (s, u) and a.get("top_offset_cm") is not None]
+        out[f"stack {s}, on {u}"] = {
+            kind: {"places": len(g), "median cm": _median([a["top_offset_cm"] for a in g])}
+            for kind, g in (("succeeded", [a for a in group if a["success"]]),
+                            ("failed", [a for a in group if not a["success"]]))}
     return out
 
 
