@@ -35,6 +35,7 @@ RETIRED: dict[str, Any] = {
     "learner.augment_rotation": False,
     "model.angle_bins": 0,
     "learner.rotation_failure_weight": 0.0,
+    "model.global_context": False,
 }
 # Fields a saved config may lack, and what it ran with then: it was saved before the field existed, or while
 # samples_per_insert's "no ratio limit" was an unset value that TOML cannot write. A saved config fills them in
@@ -145,10 +146,6 @@ class ModelConfig:
     # reward, and its peaks come from what was learned. (Not zero: a flat map gives the argmax and the
     # exploration candidates no order but the pixel index, and failures, labelled 0, give it no gradient.)
     q_head_init: Literal["default", "small"] = "small"
-    # A branch that reads the whole heightmap and adds what it holds to every pixel's features (common/model.py,
-    # GlobalContext): the trunk alone sees 22 cm around a pixel, so a place cannot tell that a taller stack
-    # stands elsewhere.
-    global_context: bool = False
     # Inference numerics: "auto" picks bf16 where the CPU computes it natively, else fp32; "int8": the trunk in
     # int8 (common/int8net.py).
     precision: Literal["auto", "fp32", "bf16", "int8"] = "auto"

@@ -88,15 +88,6 @@ class _Layer:
         return y.relu_() if relu else y
 
 
-def add_context(features: Tensor, context: torch.nn.Module | None, inp: Tensor) -> Tensor:
-    """The bottleneck features plus the net's GlobalContext of its fp32 input (unchanged without one)."""
-    if context is None:
-        return features
-    with torch.no_grad():
-        ctx = context(inp).to(features.dtype)
-    return (features + ctx).contiguous(memory_format=torch.channels_last)
-
-
 class FastNet:
     """Inference-only form of one GRConvNet: (B,4,H,W) fp32 → (B,H,W,1+R) fp32 = (q, rotation channels...)."""
 
@@ -124,14 +115,12 @@ class FastNet:
             self.heads_w = heads_w.detach().float().t().contiguous()  # (C, 1 + rotation channels)
             self.heads_b = torch.cat([net.q_head.bias, net.rot_head.bias]).detach().float()
             self.outputs = int(self.heads_b.numel())
-            self.context = net.context  # GlobalContext or None: fp32, added after the residual blocks
 
     def __call__(self, x: Tensor) -> Tensor:
         return self.tail(self.trunk(x))
 
     def trunk(self, x: Tensor) -> Tensor:
         """(B,4,H,W) fp32 input → the (B,C,H,W) channels_last features conv6 reads."""
-        inp = x
         if self.low_precision:
             hi = x.to(torch.bfloat16)
             x = torch.cat([hi, (x - hi.float()).to(torch.bfloat16), hi], 1)
@@ -140,7 +129,6 @@ class FastNet:
             x = layer(x)
         for first, second in self.res:
             x = second(first(x), add_to=x)
-        x = add_context(x, self.context, inp)
         for layer in self.up:
             x = layer(x)
         return x

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .fastnet import FastNet, _Layer, add_context
+from .fastnet import FastNet, _Layer
 from .model import GRConvNet
 
 _MIN_SCALE = 1e-12  # an all-zero tensor still gets a valid scale
@@ -155,14 +155,12 @@ class Int8Net:
         """(B,4,H,W) fp32 input → the (B,C,H,W) features conv6 reads; each int8 conv's input is quantised at
         its own range, so no scale is calibrated and new weights cost only their quantisation."""
         f = self.exact
-        inp = x
         x = f.layers[0](x.contiguous(memory_format=torch.channels_last))
         x = self.conv2(*quantize_dynamic(x, signed=False), relu=True)
         x = self.conv3(*quantize_dynamic(x, signed=False), relu=True)  # the residual stream, fp32
         for first, second in self.res:
             y = first(*quantize_dynamic(x), relu=True)
             x = second(*quantize_dynamic(y, signed=False), add_to=x)
-        x = add_context(x, f.context, inp)
         for layer in f.up:
             x = layer(x)
         return x

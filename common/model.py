@@ -58,38 +58,11 @@ class ResidualBlock(nn.Module):
         return x + self.bn2(self.conv2(y))
 
 
-class GlobalContext(nn.Module):
-    """What the whole scene holds, added to every position of the bottleneck: (B, 4, H, W) → (B, 4C, 1, 1).
-
-    Why: the trunk's receptive field is 112 px (22 cm at 2 mm per pixel), so a pixel's Q cannot see a stack
-    further away; 38 % of the stacking policies' greedy places went onto a lower cube while a taller stack
-    stood, its nearest edge a median 10.5 cm away (docs/results.md). VPG's and SPOT's DenseNet trunks see the whole image.
-    The branch reads the whole heightmap at a quarter of its resolution (three stride-2 3×3 convs, then the
-    mean and max over positions); its last 1×1 conv starts at zero, so a fresh net is the plain GR-ConvNet.
-    It always reads the whole heightmap, also when the learner trains the trunk on a window (learner/crop.py).
-    """
-
-    def __init__(self, in_channels: int, channels: int):
-        super().__init__()
-        c = channels
-        self.convs = nn.Sequential(
-            nn.Conv2d(in_channels, c, 3, stride=2, padding=1), nn.ReLU(),
-            nn.Conv2d(c, 2 * c, 3, stride=2, padding=1), nn.ReLU(),
-            nn.Conv2d(2 * c, 4 * c, 3, stride=2, padding=1), nn.ReLU())
-        self.out = nn.Conv2d(8 * c, 4 * c, 1)
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
-
-    def forward(self, x: Tensor) -> Tensor:
-        y = self.convs(nn.functional.avg_pool2d(x.float(), 4, ceil_mode=True))
-        return self.out(torch.cat([y.mean((2, 3), keepdim=True), y.amax((2, 3), keepdim=True)], 1))
-
-
 class GRConvNet(nn.Module):
     """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2 * harmonics, h, w): cos, sin, ...)."""
 
     def __init__(self, channels: int = 32, residual_blocks: int = 5, in_channels: int = 4,
-                 rotation_harmonics: int = 1, q_head_scale: float = 1.0, global_context: bool = False):
+                 rotation_harmonics: int = 1, q_head_scale: float = 1.0):
         super().__init__()
         c = channels
         self.conv1 = nn.Conv2d(in_channels, c, 9, padding=4)
@@ -111,22 +84,15 @@ class GRConvNet(nn.Module):
             with torch.no_grad():
                 self.q_head.weight.mul_(q_head_scale)
                 self.q_head.bias.mul_(q_head_scale)
-        # Drawn from a forked generator, so a seed gives every net the same trunk and heads with or without it.
-        with torch.random.fork_rng(devices=[]):
-            self.context = GlobalContext(in_channels, c) if global_context else None
 
-    def forward(self, x: Tensor, scene: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """scene: the whole heightmap's input when x is a window of it (the global context reads it); None: x."""
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         h, w = x.shape[-2:]
         if h % 4 or w % 4:
             raise ValueError(f"input is {h}x{w}: RoManNet needs h and w to be multiples of 4")
-        inp = x
         x = torch.relu(self.bn1(self.conv1(x)))
         x = torch.relu(self.bn2(self.conv2(x)))
         x = torch.relu(self.bn3(self.conv3(x)))
         x = self.res(x)
-        if self.context is not None:
-            x = x + self.context(inp if scene is None else scene).to(x.dtype)
         x = torch.relu(self.bn4(self.deconv1(x)))
         x = torch.relu(self.bn5(self.deconv2(x)))
         x = self.conv6(x)
@@ -145,7 +111,7 @@ class RoManNet(nn.Module):
             torch.manual_seed(seed)
             self.nets = nn.ModuleDict({
                 p: GRConvNet(cfg.channels, cfg.residual_blocks, rotation_harmonics=cfg.rotation_harmonics,
-                             q_head_scale=Q_HEAD_SCALES[cfg.q_head_init], global_context=cfg.global_context)
+                             q_head_scale=Q_HEAD_SCALES[cfg.q_head_init])
                 for p in PRIMITIVES
             })
 

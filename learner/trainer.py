@@ -90,15 +90,13 @@ class StepStats:
 
 class _GroupInputs(NamedTuple):
     """One primitive's items in their training windows: labels and supports (k, h, w), input x, executed
-    pixels rows, cols (k,), and the whole heightmaps' input when x is a window and the nets read the whole
-    scene (model.global_context; else None)."""
+    pixels rows, cols (k,)."""
 
     label: Tensor
     support: Tensor
     x: Tensor
     rows: Tensor
     cols: Tensor
-    scene: Tensor | None = None
 
 
 class _GroupLoss(NamedTuple):
@@ -317,9 +315,7 @@ class Trainer:
             cols.append(a.col - c0)
         return _GroupInputs(torch.from_numpy(np.stack(labels)).to(self.device),
                             torch.from_numpy(np.stack(supports)).to(self.device), self._inputs(colors, depths),
-                            torch.tensor(rows, device=self.device), torch.tensor(cols, device=self.device),
-                            self._inputs([t.color_before for t in ts], [t.depth_before for t in ts])
-                            if crop and self.model.cfg.global_context else None)
+                            torch.tensor(rows, device=self.device), torch.tensor(cols, device=self.device))
 
     def _group_loss(self, p: str, ts: list[TransitionMsg], v_next: list[float], targets: list[float],
                     is_weights: list[float]) -> _GroupLoss:
@@ -327,7 +323,7 @@ class Trainer:
         cfg = self.cfg
         g = self._group_inputs(ts, v_next)
         with self._autocast():
-            q, rot = self.model.nets[p](g.x, g.scene)
+            q, rot = self.model.nets[p](g.x)
         q, rot = q.float(), rot.float()
         ar = torch.arange(len(ts), device=self.device)
         q_exec = q[ar, g.rows, g.cols]

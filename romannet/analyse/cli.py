@@ -45,7 +45,7 @@ DIAGNOSTICS: dict[str, tuple[str, str, str]] = {
         "went to a stack's top (and took a cube off it) and how many greedy places went there (and raised it). "
         "For greedy places: the median distance from the centre of the cube top under the pixel, of those that "
         "succeeded and those that failed, and how many went onto a lower cube while a stack of 2 or more stood "
-        "and how far that stack was (past the nets' 22 cm receptive field, a pixel's Q cannot see it).",
+        "and how far that stack was (the nets' receptive field reaches 11 cm either side of a pixel).",
         "romannet analyse stack-actions runs/stack-h4 --split 5 --json"),
     "repeated-failures": (
         "how often the greedy policy repeats the action that just failed",
