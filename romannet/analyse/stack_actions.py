@@ -10,7 +10,9 @@ cubes under the action pixel (the tallest point within `--radius-m` of it, in cu
 task.cube_size_m). It reports per training phase, for greedy and explored actions apart, attempts and
 successes by (stack height, cubes under the pixel), and the headline counts: while a stack of 2 or more
 stood, how many greedy picks went to a stack top (and how many of them took a cube off it) and how many
-greedy places went to a stack top (and raised it). Prints one JSON object (or a line per phase).
+greedy places went to a stack top (and raised it), how far greedy places land from the centre of the top
+under them, and how far the taller stack stood from those that went onto a lower cube. Prints one JSON
+object (or a line per phase).
 """
 
 from __future__ import annotations
@@ -61,7 +63,9 @@ def distance_to_height_px(depth_hm: np.ndarray, row: int, col: int, cubes: int, 
 
 
 def episode_actions(path: Path, radius_m: float) -> list[dict]:
-    """{primitive, explored, success, stack, under} of every recorded pick and place of one episode file."""
+    """{primitive, explored, success, stack, under} of every recorded pick and place of one episode file; a
+    place also has top_offset_cm (from the centre of the top under it) and to_stack_cm (to the tallest stack,
+    when it went onto a lower cube), None where not measured."""
     config_toml, transitions = recorded_transitions(path)
     cube_m = recorded_number(path, config_toml, "task", "cube_size_m")
     radius_px = int(round(radius_m / recorded_number(path, config_toml, "workspace", "resolution_m")))
