@@ -30,8 +30,12 @@ def stack_height(depth_hm: np.ndarray, cube_size_m: float = 0.05, median_ksize: 
     """
     if not cube_size_m > 0:
         raise ValueError(f"cube_size_m must be > 0; got {cube_size_m}")
+    return max(0, int(np.rint(float(filtered_heightmap(depth_hm, median_ksize).max()) / cube_size_m)))
+
+
+def filtered_heightmap(depth_hm: np.ndarray, median_ksize: int = 5) -> np.ndarray:
+    """The heightmap stack_height reads: unknown heights as 0 m, speckle removed by a median filter."""
     if median_ksize not in _FLOAT_MEDIAN_KSIZES:
         raise ValueError(f"median_ksize must be one of {_FLOAT_MEDIAN_KSIZES} (cv2 on float32); got {median_ksize}")
-    filtered = cv2.medianBlur(_as_heightmap(depth_hm), median_ksize)
-    return max(0, int(np.rint(float(filtered.max()) / cube_size_m)))
+    return cv2.medianBlur(_as_heightmap(depth_hm), median_ksize)
 

@@ -248,7 +248,8 @@ def test_place_geometry_measures_the_offset_from_a_top_and_the_distance_to_a_tal
     assert top_offset_px(hm, 44, 47, 2, 0.05) == pytest.approx(np.hypot(0.5, 2.5))
     assert top_offset_px(hm, 5, 5, 1, 0.05) == pytest.approx(np.hypot(9.5, 9.5))  # beside the lone cube
     assert top_offset_px(hm, 14, 14, 3, 0.05) is None and top_offset_px(hm, 14, 14, 0, 0.05) is None
-    assert distance_to_height_px(hm, 14, 14, 2, 0.05) == pytest.approx(np.hypot(26, 26))
+    # as stack_height reads it: the median filter rounds the stack's corner, so its nearest pixel is (41, 41)
+    assert distance_to_height_px(hm, 14, 14, 2, 0.05) == pytest.approx(np.hypot(27, 27))
     assert distance_to_height_px(hm, 45, 45, 2, 0.05) == 0.0
     assert distance_to_height_px(hm, 14, 14, 3, 0.05) is None
 
@@ -306,6 +307,9 @@ def test_stack_actions_reads_a_stacking_run_from_its_recorded_transitions(tmp_pa
         ("pick", 1, 1, True, False), ("place", 1, 1, True, False), ("pick", 2, 2, True, False),
         ("place", 1, 1, True, False), ("pick", 2, 1, False, False), ("pick", 2, 0, False, True)]
     assert len(actions) == len(STACK_SCRIPT)
+    places = [x for x in actions if x["primitive"] == "place"]
+    assert all(x["top_offset_cm"] is not None and 0 <= x["top_offset_cm"] < 5 for x in places)  # onto a cube
+    assert all(x["to_stack_cm"] is None for x in places)  # none went onto a lower cube beside a taller stack
     assert analyse("stack-actions", str(tmp_path / "run"), "--json") == 0
     headline = json.loads(capsys.readouterr().out)["all"]["while a stack of 2+ stood (greedy)"]
     assert (headline["picks at a stack top"], headline["cubes taken off a stack"], headline["picks elsewhere"]) == (1, 1, 1)

@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from romannet.common.stack import stack_height
+from romannet.common.stack import filtered_heightmap, stack_height
 
 from .phases import recorded_number, recorded_transitions
 
@@ -42,10 +42,11 @@ def cubes_under(depth_hm: np.ndarray, row: int, col: int, cube_size_m: float, ra
 
 def top_offset_px(depth_hm: np.ndarray, row: int, col: int, level: int, cube_size_m: float) -> float | None:
     """Distance (px) from a pixel to the centre of the cube top at `level` cubes nearest it: the connected
-    pixels within a quarter cube of that height; None when no top stands at that level."""
+    pixels of the stack-height reading (common.stack.filtered_heightmap) within a quarter cube of that height;
+    None when no top stands at that level."""
     if level < 1:
         return None
-    depth = np.nan_to_num(np.asarray(depth_hm, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    depth = filtered_heightmap(depth_hm)
     count, labels = cv2.connectedComponents((np.abs(depth - level * cube_size_m) < cube_size_m / 4).astype(np.uint8))
     if count < 2:
         return None
@@ -56,9 +57,9 @@ def top_offset_px(depth_hm: np.ndarray, row: int, col: int, level: int, cube_siz
 
 
 def distance_to_height_px(depth_hm: np.ndarray, row: int, col: int, cubes: int, cube_size_m: float) -> float | None:
-    """Distance (px) from a pixel to the nearest pixel at least `cubes` cubes high; None when there is none."""
-    depth = np.nan_to_num(np.asarray(depth_hm, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    tall = np.argwhere(depth > (cubes - 0.5) * cube_size_m)
+    """Distance (px) from a pixel to the nearest pixel that stack_height reads as at least `cubes` cubes high;
+    None when there is none."""
+    tall = np.argwhere(filtered_heightmap(depth_hm) >= (cubes - 0.5) * cube_size_m)
     return float(np.hypot(tall[:, 0] - row, tall[:, 1] - col).min()) if len(tall) else None
 
 
