@@ -43,6 +43,7 @@ RETIRED: dict[str, Any] = {
 SAVED_WITHOUT: dict[str, Any] = {
     "model.rotation_harmonics": 1,
     "replay.samples_per_insert": 0.0,
+    "sim.coupled_fingers": False,
 }
 
 
