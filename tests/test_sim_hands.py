@@ -133,3 +133,14 @@ def test_coupled_fingers_hold_a_cube_centred_and_place_it_where_asked(hand: str)
 def test_a_saved_config_without_coupled_fingers_runs_as_it_was_trained() -> None:
     assert SimConfig().coupled_fingers and load_config(None, ['sim.hand="panda"']).sim.coupled_fingers  # recipes
     assert as_saved({"sim": {"hand": "panda"}})["sim"]["coupled_fingers"] is False  # a run saved before the field
+
+
+def test_place_geometry_counts_the_places_that_hold_and_renders_a_table() -> None:
+    """romannet bench place-geometry's measurement: with coupled fingers a cube placed 1 cm off the top's
+    centre, along a face and along the diagonal, holds on a lone cube and on a 2-stack."""
+    from romannet.bench.place_geometry import markdown, place_table
+
+    table = place_table("panda", 0.04, coupled=True, seeds=(0,), offsets_m=(0.01,), turns_deg=(0.0,))
+    assert table["rows"] == [[1, 0.01, [[2, 2]]], [2, 0.01, [[2, 2]]]]
+    text = markdown({"tables": [table]})
+    assert "| a 2-stack | 1 cm | 2/2 |" in text and "coupled fingers" in text
