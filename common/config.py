@@ -243,10 +243,6 @@ class ExplorationConfig:
     # not chosen again (common/failure_memory.py): a greedy policy otherwise repeats a failed pick on the scene
     # it did not change until the episode ends; 10 px beat 20 and 0 on 3 checkpoints (docs/results.md). 0: off.
     failure_memory_px: int = 10
-    # The Q maps a decision chooses from are blurred by a Gaussian of this sigma (px) first, as GR-ConvNet's
-    # and GG-CNN's post-processing does: the argmax lands in the middle of a high-Q region, not on its rim.
-    # The maps the actor records and bootstraps from stay raw. 0: off.
-    q_smoothing_sigma_px: float = 0.0
     epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
     epsilon_decay: float = 0.9998
     epsilon_min: float = 0.1
@@ -267,8 +263,6 @@ class ExplorationConfig:
                 "must be in (0, 0.2) m")
         for name in ("mask_pick_reach_px", "mask_push_reach_px", "failure_memory_px"):
             require(0 <= getattr(self, name) <= 200, f"exploration.{name}", getattr(self, name), "must be 0..200 px")
-        require(0.0 <= self.q_smoothing_sigma_px <= 20.0, "exploration.q_smoothing_sigma_px",
-                self.q_smoothing_sigma_px, "must be 0..20 px (0 = off)")
         require(0.0 <= self.epsilon_min <= self.epsilon_start <= 1.0, "exploration.epsilon_start",
                 self.epsilon_start, "must satisfy 0 <= epsilon_min <= epsilon_start <= 1")
         require(0.0 < self.epsilon_decay <= 1.0, "exploration.epsilon_decay", self.epsilon_decay,

@@ -10,7 +10,6 @@ Selection (argmax, or exploration over candidates) lives in `exploration.select_
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 from collections.abc import Mapping, Sequence
@@ -18,7 +17,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
-import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -283,8 +281,7 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
         return shown, chosen
 
     if engine is None:
-        raw = reference_maps(model, color_hm, depth_hm, nets)
-        maps, chosen_from = masked(raw)
+        maps, chosen_from = masked(reference_maps(model, color_hm, depth_hm, nets))
     else:
         raw = engine.infer(color_hm, depth_hm, nets)
         maps, chosen_from = masked(raw)
@@ -292,19 +289,6 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
         if rerun:  # int8 cannot order the best two pixels: the fp32 nets they lie in decide
             engine.exact_reruns += 1
             exact = engine.infer(color_hm, depth_hm, rerun, exact=True)
-            raw = PolicyMaps({**raw.q, **exact.q}, {**raw.angle, **exact.angle})
-            maps, chosen_from = masked(raw)
-    raw_q = raw.q
-    if exploration_cfg.q_smoothing_sigma_px > 0:  # choose from blurred maps; record and bootstrap the raw ones
-        blurred = {p: smoothed_q(q, exploration_cfg.q_smoothing_sigma_px) for p, q in raw_q.items()}
-        chosen_from = blurred if chosen_masks is None else {p: masked_q(q, chosen_masks[p]) for p, q in blurred.items()}
+            maps, chosen_from = masked(PolicyMaps({**raw.q, **exact.q}, {**raw.angle, **exact.angle}))
     action = select_action(chosen_from, maps.angle, explore_rate, exploration_cfg, rng, chosen_masks)
-    if exploration_cfg.q_smoothing_sigma_px > 0:  # the chosen pixel's own Q, as without the blur
-        action = dataclasses.replace(action, q_value=float(raw_q[action.primitive][action.row, action.col]))
     return (action, maps) if return_maps else action
-
-
-def smoothed_q(q: np.ndarray, sigma_px: float) -> np.ndarray:
-    """A Q map blurred by a Gaussian of sigma_px pixels (borders reflected), float32, the same shape."""
-    return cv2.GaussianBlur(np.asarray(q, np.float32), (0, 0), sigmaX=sigma_px, sigmaY=sigma_px,
-                            borderType=cv2.BORDER_REFLECT)
