@@ -36,6 +36,7 @@ RETIRED: dict[str, Any] = {
     "model.angle_bins": 0,
     "learner.rotation_failure_weight": 0.0,
     "model.global_context": False,
+    "exploration.q_smoothing_sigma_px": 0.0,
 }
 # Fields a saved config may lack, and what it ran with then: it was saved before the field existed, or while
 # samples_per_insert's "no ratio limit" was an unset value that TOML cannot write. A saved config fills them in
@@ -43,6 +44,7 @@ RETIRED: dict[str, Any] = {
 SAVED_WITHOUT: dict[str, Any] = {
     "model.rotation_harmonics": 1,
     "replay.samples_per_insert": 0.0,
+    "sim.coupled_fingers": False,
 }
 
 
@@ -183,6 +185,10 @@ class RewardConfig:
     zero_reward_support: Literal["kernel", "pixel"] = "kernel"
     occupied_height_m: float = 0.01  # clutter progress: a pixel is occupied above this height
     progress_tolerance: float = 0.02  # a progress drop larger than this is a reversal (reward 0)
+    # The reward of a place: "tallest" = W X, X = the tallest stack grew (the paper's); "local" = W h / goal,
+    # h the stack the cube came to rest on (0 if it rests on the floor): a label the pixel's neighbourhood
+    # decides, and the argmax over pixels prefers the taller stack (SPOT and the authors' code scale by height).
+    place_reward: Literal["tallest", "local"] = "tallest"
 
     def __post_init__(self) -> None:
         for name in ("push_weight", "pick_weight", "place_weight"):
@@ -199,6 +205,8 @@ class RewardConfig:
                 "must be in (0, 0.2) m")
         require(0.0 <= self.progress_tolerance < 0.5, "reward.progress_tolerance", self.progress_tolerance,
                 "must be in [0, 0.5)")
+        require(self.place_reward in ("tallest", "local"), "reward.place_reward", self.place_reward,
+                "must be 'tallest' or 'local'")
 
     @property
     def sigma_x_px(self) -> float:

@@ -61,6 +61,10 @@ class SimConfig:
     finger_force_n: float | None = None  # squeezing force of each finger (N)
     finger_speed_mps: float | None = None  # top speed of each finger (m/s)
     finger_travel_m: float | None = None  # travel of each finger from closed to fully open (m)
+    # Both fingers one mechanism, as on the real Panda hand and RG2: a gear constraint keeps their positions
+    # equal, so a held object sits centred in the hand. Independent fingers let it shift ~1 cm (the pair
+    # drifts under inertia while both squeeze), and most places of a 4 cm cube onto a stack fell off.
+    coupled_fingers: bool = True
     # --- physics
     time_step_s: float = 1.0 / 240.0
     substeps: int = 0  # PyBullet numSubSteps (0 = none); raise for stiffer contacts at a cost in speed

@@ -39,6 +39,7 @@ EXAMPLES = {
               "  romannet bench learner --json --batch-sizes 1,4,8 --repeats 10\n"
               "  romannet bench system --json --actions 30\n"
               "  romannet bench pick-geometry --hands panda,rg2 --cube-sizes 0.05,0.04\n"
+              "  romannet bench place-geometry --hands panda,rg2 --cube-sizes 0.04\n"
               "  sudo romannet bench faults --json   # network namespaces: root"),
     "sim": "romannet sim snapshot --task stacking --seed 3 --out snapshot.png --action pick:112:90:30",
     "replay": "romannet replay --config configs/default.toml --dir runs/default/replay --listen tcp/127.0.0.1:7447\n"

@@ -58,6 +58,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
         robot = args.robots.split(",")[-1].strip()
         result = run_pick_geometry_benchmark(hands=hands, cube_sizes_m=sizes, robot=robot, seed=args.seed)
         result["markdown"] = markdown(result)
+    elif args.what == "place-geometry":
+        from romannet.bench.place_geometry import markdown as place_markdown
+        from romannet.bench.place_geometry import run_place_geometry_benchmark
+
+        hands = tuple(h.strip() for h in args.hands.split(",") if h.strip())
+        sizes = tuple(float(c) for c in args.cube_sizes.split(",") if c.strip())
+        result = run_place_geometry_benchmark(hands=hands, cube_sizes_m=sizes, robot=args.robots.split(",")[-1].strip(),
+                                              seeds=(args.seed, args.seed + 1))
+        result["markdown"] = place_markdown(result)
     elif args.what == "fuzz":
         from romannet.bench.fuzz import FuzzPlan, run_fuzz
 
@@ -114,6 +123,12 @@ BENCHMARKS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
                       "Which picks of a lone cube each simulated hand holds, by offset from the cube's centre "
                       "and by angle.", "romannet bench pick-geometry --hands panda,rg2 --cube-sizes 0.05,0.04",
                       ("seed", "robots", "hands", "cube_sizes")),
+    "place-geometry": ("which places of a held cube onto a stack hold, fingers coupled or not",
+                       "Which places of a cube picked at its centre onto a lone cube and a 2-stack hold, by offset "
+                       "from the top's centre and by turn, with the fingers coupled (sim.coupled_fingers) and "
+                       "independent; two worlds (--seed and the next) and two offset directions per cell.",
+                       "romannet bench place-geometry --hands panda,rg2 --cube-sizes 0.04",
+                       ("seed", "robots", "hands", "cube_sizes")),
     "fuzz": ("2,000 malformed and 100 MB-1 GB messages at a replay server, and its memory",
              "A real replay server over loopback Zenoh takes --messages bad messages (random bytes, flipped and "
              "cut transitions, wrong keys, garbage requests, transitions just over replay.max_item_bytes and "

@@ -208,7 +208,8 @@ def test_every_benchmark_deploy_tool_and_diagnostic_has_a_description_and_an_exa
     from romannet.cli_parser import chosen_parser
 
     parser = build_parser()
-    tools = [("bench", b) for b in ("inference", "replay", "sim", "learner", "system", "pick-geometry", "faults")]
+    tools = [("bench", b) for b in ("inference", "replay", "sim", "learner", "system", "pick-geometry",
+                                            "place-geometry", "faults")]
     tools += [("deploy", t) for t in ("certs", "configs", "check")]
     tools += [("analyse", w) for w in ("pick-offsets", "stack-actions", "repeated-failures", "training-counts",
                                        "angle-probe")]

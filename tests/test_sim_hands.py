@@ -4,13 +4,17 @@ own force and speed; sim.finger_* override the hand's values. A 9 cm cube the Pa
 from __future__ import annotations
 
 import dataclasses
+import math
 
+import numpy as np
 import pytest
 
 from romannet.actor.sim.env import SimEnv
 from romannet.actor.sim.objects import ObjectSpec, spawn_object
+from romannet.actor.sim.scene import yaw_of
+from romannet.actor.sim.tasks import stack_height_from_poses
 from romannet.common.action import Action, position_to_pixel
-from romannet.common.config import load_config
+from romannet.common.config import as_saved, load_config
 from romannet.common.config_sim import HANDS, SimConfig
 from romannet.common.configbase import ConfigError
 
@@ -90,3 +94,53 @@ def test_the_rg2_holds_picks_the_panda_misses() -> None:
     assert panda["rows"] == [[0.0, [True]], [0.02, [False]]]
     assert rg2["rows"] == [[0.0, [True]], [0.02, [True]]]
     assert (panda["margin_m"]["0.0"], rg2["margin_m"]["0.0"]) == (0.0, 0.02)
+
+
+def _stacking_env(hand: str, *overrides: str) -> SimEnv:
+    cfg = load_config(None, [*SMALL[:-1], 'task.kind="stacking"', "task.cube_size_m=0.04", 'sim.robot="gripper"',
+                             f'sim.hand="{hand}"', "sim.num_stacking_cubes=3", *overrides])
+    return SimEnv.from_config(cfg)
+
+
+def _pick_centre(env: SimEnv, body: int) -> float:
+    """Pick a cube at its centre, the closing axis along its faces; the hang of the held cube."""
+    assert env.prims is not None
+    pos, orn = env.scene.pose(body)
+    result = env.prims.pick(float(pos[0]), float(pos[1]), env.scene.top_z(body), yaw_of(orn))
+    assert result.success, result.reason
+    return result.hang_m
+
+
+@pytest.mark.parametrize("hand", ["panda", "rg2"])
+def test_coupled_fingers_hold_a_cube_centred_and_place_it_where_asked(hand: str) -> None:
+    with _stacking_env(hand) as env:
+        env.reset(0)
+        assert env.sim.coupled_fingers and env.prims is not None and env.arm is not None
+        first, second, third = env.scene.objects[:3]
+        hang = _pick_centre(env, second)
+        held_xy, tip_xy = env.scene.pose(second)[0][:2], env.arm.tip_position()[:2]
+        assert float(np.linalg.norm(held_xy - tip_xy)) < 0.003  # centred between the fingers
+        # Built into a 2-stack, then a third cube placed 1 cm off its top's centre along a face: it stays.
+        pos, orn = env.scene.pose(first)
+        env.prims.place(float(pos[0]), float(pos[1]), env.scene.top_z(first), yaw_of(orn), hang)
+        hang = _pick_centre(env, third)
+        pos, orn = env.scene.pose(second)
+        x, y = float(pos[0]) + 0.01 * math.cos(yaw_of(orn)), float(pos[1]) + 0.01 * math.sin(yaw_of(orn))
+        env.prims.place(x, y, env.scene.top_z(second), yaw_of(orn), hang)
+        assert stack_height_from_poses(env.scene, 0.04) == 3
+
+
+def test_a_saved_config_without_coupled_fingers_runs_as_it_was_trained() -> None:
+    assert SimConfig().coupled_fingers and load_config(None, ['sim.hand="panda"']).sim.coupled_fingers  # recipes
+    assert as_saved({"sim": {"hand": "panda"}})["sim"]["coupled_fingers"] is False  # a run saved before the field
+
+
+def test_place_geometry_counts_the_places_that_hold_and_renders_a_table() -> None:
+    """romannet bench place-geometry's measurement: with coupled fingers a cube placed 1 cm off the top's
+    centre, along a face and along the diagonal, holds on a lone cube and on a 2-stack."""
+    from romannet.bench.place_geometry import markdown, place_table
+
+    table = place_table("panda", 0.04, coupled=True, seeds=(0,), offsets_m=(0.01,), turns_deg=(0.0,))
+    assert table["rows"] == [[1, 0.01, [[2, 2]]], [2, 0.01, [[2, 2]]]]
+    text = markdown({"tables": [table]})
+    assert "| a 2-stack | 1 cm | 2/2 |" in text and "coupled fingers" in text

@@ -41,6 +41,7 @@ ARM_FORCE_N = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)  # the URDF's joint eff
 FINGER_OPEN_M = 0.04  # per finger: the Panda URDF's travel, an 8 cm gap fully open (sim.finger_travel_m's default)
 JOINT_SPEED_RADPS = 2.0  # joint-space moves (going home); the Panda's limits are 2.175-2.61 rad/s
 YAW_SPEED_RADPS = 3.0  # wrist rotation during Cartesian moves
+COUPLING_FORCE_FACTOR = 5.0  # the finger coupling's strength, in multiples of one finger's squeezing force
 REACHED_TOL_M = 0.003  # a motion has arrived when the fingertips are this close to the target
 SETTLE_STEPS = 60
 IK_ITERATIONS = 6
@@ -95,6 +96,15 @@ class Hand:
             if self.sim.finger_travel_m != FINGER_OPEN_M:  # the URDF's limit stops the finger at 0.04 m
                 p.changeDynamics(self.body_id, link, jointLowerLimit=0.0, jointUpperLimit=self.sim.finger_travel_m,
                                  physicsClientId=self.client)
+        if self.sim.coupled_fingers:  # one mechanism (sim.coupled_fingers): finger positions kept equal
+            a, b = self.finger_joints
+            gear = p.createConstraint(self.body_id, a, self.body_id, b, jointType=p.JOINT_GEAR, jointAxis=[1, 0, 0],
+                                      parentFramePosition=[0, 0, 0], childFramePosition=[0, 0, 0],
+                                      physicsClientId=self.client)
+            # The fingers' joint axes point opposite ways, so equal positions is a ratio of -1; ERP 0.5 and a
+            # force 5x a finger's hold them within 1 mm of each other while both squeeze.
+            p.changeConstraint(gear, gearRatio=-1, erp=0.5, maxForce=COUPLING_FORCE_FACTOR * self.sim.finger_force_n,
+                               physicsClientId=self.client)
 
     def _measure_tip_offset(self) -> float:
         """How far the finger pads reach below the grasp-target frame (m, ~0.011), with the hand top-down."""
