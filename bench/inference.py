@@ -43,7 +43,6 @@ from romannet.common.config import ExplorationConfig, ModelConfig
 from romannet.common.int8net import Int8Net, int8_ops_available
 from romannet.common.model import RoManNet, parameter_count, preprocess, state_dict_to_tensors
 from romannet.common.policy import (
-    INFERENCE_PRECISIONS,
     FastNet,
     InferenceEngine,
     cpu_bf16_flags,
@@ -52,35 +51,19 @@ from romannet.common.policy import (
     native_bf16,
     nets_to_run,
     resolve_inference_precision,
+    weight_bits_here,
 )
+from romannet.common.scenes import SIZE_PX, synthetic_scene
 from romannet.info import cpu_model
+
+from .inference_agreement import agreement, precision_engines, shipped_models_agreement
 
 logger = logging.getLogger(__name__)
 
-SIZE_PX = 224
 # What limits the instruction sets of oneDNN, ATen and FBGEMM (to emulate an older CPU); recorded when set.
 ISA_LIMIT_VARIABLES = ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY", "FBGEMM_ENABLE_INSTRUCTIONS")
 ROTATED_SIZE_PX = 320  # the authors pad the 224 heightmap so that every rotation of it fits
 NUM_ROTATIONS = 16
-
-
-def synthetic_scene(rng: np.random.Generator, h: int = SIZE_PX, w: int = SIZE_PX) -> tuple[np.ndarray, np.ndarray]:
-    """Heightmaps of 3–10 rotated rectangular blocks on a textured floor: (h,w,3) uint8, (h,w) float32 m."""
-    rows, cols = np.mgrid[0:h, 0:w].astype(np.float32)
-    depth = np.zeros((h, w), np.float32)
-    floor = rng.integers(40, 90, size=3)
-    color = np.clip(floor + rng.integers(-6, 7, size=(h, w, 3)), 0, 255).astype(np.uint8)
-    for _ in range(int(rng.integers(3, 11))):
-        cy, cx = rng.uniform(0.1, 0.9) * h, rng.uniform(0.1, 0.9) * w
-        half_len, half_wid = rng.uniform(4, 15, size=2)
-        a = rng.uniform(0, math.pi)
-        u = (cols - cx) * math.cos(a) + (rows - cy) * math.sin(a)
-        v = -(cols - cx) * math.sin(a) + (rows - cy) * math.cos(a)
-        mask = (np.abs(u) <= half_len) & (np.abs(v) <= half_wid)
-        top = np.float32(rng.uniform(0.02, 0.08))
-        depth[mask] = np.maximum(depth[mask], top)
-        color[mask] = rng.integers(0, 256, size=3)
-    return color, depth
 
 
 def _rotation_grid(theta: float, size: tuple[int, int, int, int]) -> torch.Tensor:
@@ -156,7 +139,7 @@ def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[st
                 continue
             variants[name] = lambda fast=fast: [f(x) for f in fast]
     if int8_ops_available():  # the int8 trunk, fp32 first conv, transposed convs and folded heads
-        int8 = [Int8Net(n, fused_ops_available()) for n in nets]
+        int8 = [Int8Net(n, fused_ops_available(), weight_bits_here()) for n in nets]
         variants["int8_trunk_fused_prepacked"] = lambda: [f(x) for f in int8]
     if engine.parallel_nets:
         variants[f"engine_{engine.precision}_parallel_nets"] = lambda: engine.forward(x, ("push", "pick"))
@@ -177,23 +160,6 @@ def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[st
     return result
 
 
-def _precision_engines(model: RoManNet, cfg: ModelConfig) -> tuple[dict[str, InferenceEngine], dict[str, str]]:
-    """An engine per precision this machine can run ({precision: engine}), and why the others are left out."""
-    engines, left_out = {}, {}
-    for precision in INFERENCE_PRECISIONS:
-        if precision == "int8" and not int8_ops_available():
-            left_out[precision] = "no oneDNN int8 convolutions in this PyTorch build or CPU"
-            continue
-        try:
-            engine = InferenceEngine(model, replace(cfg, precision=precision))
-            engine.forward(torch.zeros(1, 4, 32, 32), ("push",))  # oneDNN's bf16 kernels raise on AVX2-only CPUs
-        except (RuntimeError, ValueError) as err:
-            left_out[precision] = _first_line(err)
-        else:
-            engines[precision] = engine
-    return engines, left_out
-
-
 def _load_state_ms(engine: InferenceEngine, x: torch.Tensor, repeats: int = 3) -> tuple[float, float]:
     """Median ms of load_state (fold, quantise) and of the first forward after it (prepacks) minus a second."""
     tensors = state_dict_to_tensors(engine.model)
@@ -205,42 +171,15 @@ def _load_state_ms(engine: InferenceEngine, x: torch.Tensor, repeats: int = 3) -
     return round(statistics.median(loads), 1), round(statistics.median(firsts), 1)
 
 
-def _agreement(engines: dict[str, InferenceEngine], model: RoManNet, scenes: list, rng: np.random.Generator,
-               primitives: tuple[str, ...], exploration: ExplorationConfig) -> dict[str, dict]:
-    """Per precision: share of the fp32 reference's (primitive, row, col) choices made, mean decision ms over
-    these inputs, and for an engine that reruns near ties the share rerun and the agreement without reruns."""
-    hits = {p: 0 for p in engines}
-    alone = {p: 0 for p in engines if engines[p].tie_fraction > 0}
-    times: dict[str, list[float]] = {p: [] for p in engines}
-    reruns = {p: e.exact_reruns for p, e in engines.items()}
-
-    def choice(a: object) -> tuple:
-        return a.primitive, a.row, a.col  # type: ignore[attr-defined]
-
-    for color, depth in scenes:
-        ref = choice(decide(model, color, depth, False, 0.0, rng, primitives, exploration))
-        for precision, engine in engines.items():
-            t0 = time.perf_counter()
-            hits[precision] += choice(decide(engine, color, depth, False, 0.0, rng, primitives, exploration)) == ref
-            times[precision].append((time.perf_counter() - t0) * 1e3)
-            if precision in alone:
-                fraction, engine.tie_fraction = engine.tie_fraction, 0.0
-                try:
-                    alone[precision] += choice(decide(engine, color, depth, False, 0.0, rng, primitives,
-                                                      exploration)) == ref
-                finally:
-                    engine.tie_fraction = fraction
-    n = len(scenes)
-    result = {p: {"agreement": round(hits[p] / n, 4), "decision_mean_ms": round(statistics.fmean(times[p]), 2)}
-              for p in engines}
-    for p in alone:
-        result[p].update(agreement_without_reruns=round(alone[p] / n, 4),
-                         near_tie_reruns=round((engines[p].exact_reruns - reruns[p]) / n, 4))
-    return result
+def _with_cost_ratios(by_weights: dict[str, dict], naive_ms: float) -> dict[str, dict]:
+    """Each precision's mean decision over the agreement inputs (near-tie reruns included) over the naive pass."""
+    return {weights: {p: ({**r, "decision_mean_vs_naive": round(r["decision_mean_ms"] / naive_ms, 4)}
+                          if "decision_mean_ms" in r else r) for p, r in per.items()} if "left_out" not in per
+            else per for weights, per in by_weights.items()}
 
 
 def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: int = 100,
-                            rotation_repeats: int = 1, ablation: bool = True) -> dict:
+                            rotation_repeats: int = 1, ablation: bool = True, trained: bool = True) -> dict:
     """Measure the decision path against the naive and rotation baselines; returns one JSON-able dict.
 
     The top-level decision fields are the engine that precision "auto" gives on this machine; `precisions`
@@ -252,7 +191,7 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
     # The paper's rotation head (one harmonic), the baseline of decision_harmonics2_ms.
     cfg = ModelConfig(rotation_harmonics=1)
     model = RoManNet(cfg, seed=seed).eval()
-    engines, left_out = _precision_engines(model, cfg)
+    engines, left_out = precision_engines(model, cfg)
     auto = resolve_inference_precision(cfg.precision)
     engine = engines[auto]
     slow = {p for p in engines if p == "bf16" and not native_bf16()}
@@ -296,8 +235,12 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
     rotation_samples = [_time_ms(lambda: rotations16_decision(model, color, depth)) for _ in range(rotation_repeats)]
 
     scenes = [synthetic_scene(scene_rng) for _ in range(agreement_inputs)]
-    agreement = _agreement({p: e for p, e in engines.items() if p not in slow}, model, scenes, rng, primitives,
-                           exploration)
+    measured = tuple(p for p in engines if p not in slow)
+    agreement_by_weights = {"random-init": agreement({p: engines[p] for p in measured}, model, scenes, rng,
+                                                     primitives, exploration)}
+    if trained:
+        agreement_by_weights.update(shipped_models_agreement(measured, scenes, seed, exploration, primitives))
+    agreement_random = agreement_by_weights["random-init"]
 
     naive_ms, naive_min = _summary(samples["naive"])
     rotations_ms = round(statistics.median(rotation_samples), 1)
@@ -308,7 +251,7 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
         precisions[p] = {"decision_ms": ms, "decision_min_ms": min_ms, "decision_vs_naive": round(ms / naive_ms, 4),
                          "rotations16_vs_decision": round(rotations_ms / ms, 1), "load_state_ms": load_ms,
                          "first_forward_after_load_extra_ms": first_ms, "emulated": p in slow,
-                         **agreement.get(p, {"agreement": None})}
+                         **agreement_random.get(p, {"agreement": None})}
     precisions.update((p, {"left_out": why}) for p, why in left_out.items())
     decision_ms, decision_min = precisions[auto]["decision_ms"], precisions[auto]["decision_min_ms"]
     result = {
@@ -324,6 +267,7 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
         "rotations16_vs_decision": round(rotations_ms / decision_ms, 1),
         "decision_agreement": precisions[auto]["agreement"],
         "agreement_inputs": agreement_inputs,
+        "agreement_by_weights": _with_cost_ratios(agreement_by_weights, naive_ms),
         "precisions": precisions,
         "nets_in_decision": list(nets_to_run(False, primitives)),
         "parameters_per_net": {name: parameter_count(net) for name, net in model.nets.items()},
@@ -359,9 +303,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--agreement-inputs", type=int, default=100)
     p.add_argument("--no-ablation", action="store_true")
+    p.add_argument("--no-trained", action="store_true", help="agreement on random-init nets only, not models/*")
     p.add_argument("--json", action="store_true", help="compact JSON on one line")
     args = p.parse_args(argv)
-    result = run_inference_benchmark(args.repeats, args.seed, args.agreement_inputs, ablation=not args.no_ablation)
+    result = run_inference_benchmark(args.repeats, args.seed, args.agreement_inputs, ablation=not args.no_ablation,
+                                     trained=not args.no_trained)
     sys.stdout.write(json.dumps(result, indent=None if args.json else 2) + "\n")
     return 0
 

@@ -13,8 +13,18 @@ What runs in int8, what stays fp32, and why (measured in docs/benchmarks.md, "in
   in/out channels in torch 2.13) and the output conv, into which the 1x1 heads are folded (both linear, so
   exact): 3 output channels instead of 32 make the largest layer ~4x cheaper.
 
+Without VNNI (AVX2, AVX-512 without VNNI) oneDNN multiplies uint8 by int8 with vpmaddubsw, which adds two
+products in int16 and saturates: 255 x 127 x 2 overflows. A trained net's activations and weights reach those
+extremes together often enough that the saturated sums moved its Q maps by up to 1.3x their std (measured,
+docs/benchmarks.md). There the weights take 7 bits (-63..63: 255 x 63 x 2 fits in int16), as the x86
+quantisation guides advise (PyTorch's reduce_range does the same on the activations; the weights' bit costs
+less: activation error dominates, measured).
+
 int8 is not exact: a decision whose best two pixels it cannot order is rerun with `exact`, the fp32 FastNet
-(common/policy.py, `InferenceEngine.near_ties`).
+(common/policy.py, `InferenceEngine.near_ties`). How close is "cannot order" is measured per net when it is
+built (`error_spread`): the spread of its int8 Q error on one small seeded scene, which predicted the error at
+224 px within a few % on trained and random-init nets alike, where a share of the Q map's std did not (a
+trained net's int8 error is 15-40x a random one's relative to its maps, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -23,14 +33,24 @@ import math
 import platform
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from .fastnet import FastNet, _Layer
-from .model import GRConvNet
+from .model import GRConvNet, preprocess
+from .scenes import synthetic_scene
 
 _MIN_SCALE = 1e-12  # an all-zero tensor still gets a valid scale
 _NO_DILATION = [1, 1]
+VNNI_CPU_FLAGS = ("avx512_vnni", "avx_vnni", "amx_int8")
+# oneDNN ISA limits (ONEDNN_MAX_CPU_ISA) below its first VNNI level: int8 dot products through vpmaddubsw.
+ONEDNN_ISAS_WITHOUT_VNNI = ("SSE41", "AVX", "AVX2", "AVX512_CORE")
+WEIGHT_BITS_VNNI = 8
+WEIGHT_BITS_NO_VNNI = 7
+# The scene int8's error is measured on: 64 px costs ~1/12 of a 224 px pass and gave the same error spread.
+CALIBRATION_SIZE_PX = 64
+CALIBRATION_SEED = 7
 
 
 def int8_ops_available() -> bool:
@@ -64,18 +84,28 @@ def quantize_u8(x: Tensor, q: QParams) -> Tensor:
     return torch.add(offset, x, alpha=1.0 / q.scale).clamp_(0.0, 255.0).to(torch.uint8)
 
 
-def quantize_weight(weight: Tensor) -> tuple[Tensor, Tensor]:
-    """Symmetric int8 per output channel (dim 0): (int8 weights, fp32 scales). oneDNN takes zero points of 0."""
+def int8_weight_bits(cpu_flags: frozenset[str], isa_cap: str) -> int:
+    """The bits int8 weights may use without saturating oneDNN's int16 pair sums: 8 with VNNI, else 7.
+    isa_cap: ONEDNN_MAX_CPU_ISA as set ("" for none)."""
+    vnni = any(flag in cpu_flags for flag in VNNI_CPU_FLAGS) and isa_cap.upper() not in ONEDNN_ISAS_WITHOUT_VNNI
+    return WEIGHT_BITS_VNNI if vnni else WEIGHT_BITS_NO_VNNI
+
+
+def quantize_weight(weight: Tensor, bits: int = WEIGHT_BITS_VNNI) -> tuple[Tensor, Tensor]:
+    """Symmetric int8 per output channel (dim 0) in `bits` bits (8: -127..127, 7: -63..63): (int8 weights, fp32
+    scales). oneDNN takes zero points of 0."""
+    top = float(2 ** (bits - 1) - 1)
     w = weight.detach().float().contiguous()
-    scales = (w.abs().amax(dim=(1, 2, 3)) / 127.0).clamp_min(_MIN_SCALE)
-    return torch.round(w / scales.view(-1, 1, 1, 1)).clamp_(-127, 127).to(torch.int8), scales
+    scales = (w.abs().amax(dim=(1, 2, 3)) / top).clamp_min(_MIN_SCALE)
+    return torch.round(w / scales.view(-1, 1, 1, 1)).clamp_(-top, top).to(torch.int8), scales
 
 
 class _QConv:
     """One convolution in int8 by oneDNN: uint8 input, int8 weights per output channel, fp32 bias and output."""
 
-    def __init__(self, weight: Tensor, bias: Tensor, stride: int, padding: int):
-        self.weight, self.w_scales = quantize_weight(weight)
+    def __init__(self, weight: Tensor, bias: Tensor, stride: int, padding: int,
+                 weight_bits: int = WEIGHT_BITS_VNNI):
+        self.weight, self.w_scales = quantize_weight(weight, weight_bits)
         self.w_zero_points = torch.zeros(self.weight.shape[0], dtype=torch.int32)
         self.bias = bias.detach().float().contiguous()
         self.stride, self.padding = [stride] * 2, [padding] * 2
@@ -129,17 +159,20 @@ def folded_head(fast: FastNet) -> tuple[Tensor, Tensor]:
 class Int8Net:
     """Inference form of one GRConvNet with an int8 trunk: (B,4,H,W) fp32 → (B,H,W,1+R) fp32, as FastNet."""
 
-    def __init__(self, net: GRConvNet, fused: bool | None = None):
+    def __init__(self, net: GRConvNet, fused: bool | None = None, weight_bits: int = WEIGHT_BITS_VNNI):
+        """weight_bits: 8 where oneDNN has VNNI, else 7 (`int8_weight_bits`)."""
         # The fp32 net: its first conv, transposed convs and tail are ours too, and it reruns near ties.
         self.exact = f = FastNet(net, "fp32", fused)
+        self.weight_bits = weight_bits
         with torch.no_grad():
-            self.conv2 = _QConv(f.layers[1].weight, f.layers[1].bias, 2, 1)
-            self.conv3 = _QConv(f.layers[2].weight, f.layers[2].bias, 2, 1)
-            self.res = [(_QConv(first.weight, first.bias, 1, 1), _QConv(second.weight, second.bias, 1, 1))
-                        for first, second in f.res]
+            self.conv2 = _QConv(f.layers[1].weight, f.layers[1].bias, 2, 1, weight_bits)
+            self.conv3 = _QConv(f.layers[2].weight, f.layers[2].bias, 2, 1, weight_bits)
+            self.res = [(_QConv(first.weight, first.bias, 1, 1, weight_bits),
+                         _QConv(second.weight, second.bias, 1, 1, weight_bits)) for first, second in f.res]
             # Fold the heads into conv6 only where that makes it narrower (fewer outputs than channels).
             self.head = _Layer(*folded_head(f), torch.float32, 1, 4, False, f.conv6.fused) \
                 if f.outputs < f.conv6.weight.shape[0] else None
+            self.error_spread = error_spread(self, calibration_input())
 
     def __call__(self, x: Tensor) -> Tensor:
         try:
@@ -164,3 +197,18 @@ class Int8Net:
         for layer in f.up:
             x = layer(x)
         return x
+
+
+def calibration_input(size_px: int = CALIBRATION_SIZE_PX) -> Tensor:
+    """The fixed (1,4,size,size) scene int8's error is measured on."""
+    return preprocess(*synthetic_scene(np.random.default_rng(CALIBRATION_SEED), size_px, size_px))
+
+
+def error_spread(net: Int8Net, x: Tensor) -> float:
+    """max - min over pixels of int8's Q error against fp32 on x: no two pixels' errors differ by more, so two
+    pixels whose int8 Q values are further apart keep their order (on x, and about as much on other scenes:
+    measured). inf where the maps are not finite (weights a diverged learner sent)."""
+    with torch.inference_mode():
+        error = net(x)[0, ..., 0] - net.exact(x)[0, ..., 0]
+        spread = float(error.max() - error.min())
+    return spread if math.isfinite(spread) else math.inf

@@ -27,17 +27,19 @@ from .config import ExplorationConfig, ModelConfig
 from .exploration import select_action
 from .failure_memory import FailureMemory, join_masks
 from .fastnet import FastNet, fused_ops_available
-from .int8net import Int8Net, int8_ops_available
+from .int8net import Int8Net, int8_ops_available, int8_weight_bits
 from .model import RoManNet, decode_rotation, load_tensors, preprocess
 
 logger = logging.getLogger(__name__)
 
 BF16_CPU_FLAGS = ("avx512_bf16", "amx_bf16")
 INFERENCE_PRECISIONS = ("fp32", "bf16", "int8")
-# int8's error at a map's worst pixel, as a share of the maps' std: median 0.007 with AVX2 kernels, 0.003 with
-# VNNI/AMX, on random-init nets (on trained ones 0.05-0.4: why "auto" does not pick int8, docs/benchmarks.md).
-# A decision whose best two pixels are closer than this share is rerun in fp32.
-INT8_TIE_FRACTION = 0.01
+# A decision whose best two Q values are closer than this share of int8's error spread (max - min of each net's
+# int8 Q error on a calibration scene, common/int8net.py) is rerun in fp32. The pixels that decide lie in the
+# maps' top, where int8's error is smaller than its spread over a whole map: with this share int8 kept 0.99 of
+# models/clutter's, 1.00 of models/stacking's and of random-init nets' decisions on the benchmark's inputs,
+# rerunning 12 %, 31 % and 4 % of them (AVX2-emulated, docs/benchmarks.md).
+INT8_TIE_SHARE = 0.25
 # oneDNN ISA limits (ONEDNN_MAX_CPU_ISA) under which it has no native bf16, or not even AVX2.
 ONEDNN_ISAS_WITHOUT_AVX2 = ("SSE41", "AVX")
 ONEDNN_ISAS_WITHOUT_BF16 = ONEDNN_ISAS_WITHOUT_AVX2 + ("AVX2", "AVX2_VNNI", "AVX512_CORE", "AVX512_CORE_VNNI")
@@ -100,6 +102,11 @@ def int8_wins() -> bool:
     return "avx2" in cpu_flags() and int8_ops_available() and onednn_isa_cap() not in ONEDNN_ISAS_WITHOUT_AVX2
 
 
+def weight_bits_here() -> int:
+    """int8 weight bits oneDNN can use here without saturating (8 with VNNI, else 7; common/int8net.py)."""
+    return int8_weight_bits(cpu_flags(), onednn_isa_cap())
+
+
 def resolve_precision(precision: str) -> str:
     """"fp32" or "bf16" (the learner's numerics): "auto" picks bf16 only where the CPU computes it natively."""
     if precision == "auto":
@@ -113,10 +120,14 @@ def resolve_precision(precision: str) -> str:
 
 
 def resolve_inference_precision(precision: str) -> str:
-    """model.precision for the actor's decisions: "fp32", "bf16" or "int8"."""
+    """model.precision for the actor's decisions: "fp32", "bf16" or "int8". "auto": bf16 where native; else int8
+    where oneDNN runs it with AVX2 or more (int8_wins: with its near ties rerun in fp32 it kept >= 0.99 of fp32's
+    decisions on random-init and shipped trained nets at 0.70-0.87 of fp32's mean decision time,
+    docs/benchmarks.md); else fp32."""
     if precision == "auto":
-        # bf16 where native; never int8: it keeps random-init nets' argmax but not trained ones' (benchmarks.md)
-        return "bf16" if native_bf16() else "fp32"
+        if native_bf16():
+            return "bf16"
+        return "int8" if int8_wins() else "fp32"
     if precision == "int8":
         if not int8_ops_available():
             raise ValueError("precision 'int8' needs oneDNN's int8 convolutions (torch.ops.onednn.qconv2d_pointwise"
@@ -133,8 +144,9 @@ def resolve_inference_precision(precision: str) -> str:
 class InferenceEngine:
     """The actor's fast path around a RoManNet: eval mode, inference mode, folded/prepacked nets.
 
-    With precision int8, decide() reruns a decision whose best two pixels int8 cannot order (`near_ties`)
-    with the exact fp32 form of the nets they lie in; `exact_reruns` counts such decisions.
+    With precision int8, decide() reruns a decision whose best two pixels int8 cannot order (`near_ties`,
+    measured per net as it is built) with the exact fp32 form of the nets they lie in; `exact_reruns` counts
+    such decisions.
 
     With two or more threads, nets that run in the same decision (PushNet and PickNet) run concurrently,
     each on its own share of the threads, instead of one after another on all of them: as fast on an idle
@@ -160,7 +172,7 @@ class InferenceEngine:
                                             initializer=torch.set_num_threads,
                                             initargs=(self._threads_per_net,))
         self.nets: dict[str, FastNet | Int8Net] = {}
-        self.tie_fraction = INT8_TIE_FRACTION if self.precision == "int8" else 0.0
+        self.tie_share = INT8_TIE_SHARE if self.precision == "int8" else 0.0
         self.exact_reruns = 0
         self._rebuild()
         logger.info("inference engine: precision %s (cfg %s, cpu flags %s), fused oneDNN ops %s, %d threads%s",
@@ -169,13 +181,14 @@ class InferenceEngine:
 
     def _rebuild(self) -> None:
         if self.precision == "int8":
-            self.nets = {name: Int8Net(net, self.fused) for name, net in self.model.nets.items()}
+            bits = weight_bits_here()
+            self.nets = {name: Int8Net(net, self.fused, bits) for name, net in self.model.nets.items()}
         else:
             self.nets = {name: FastNet(net, self.precision, self.fused) for name, net in self.model.nets.items()}
 
     def load_state(self, tensors: Mapping[str, Tensor]) -> None:
         """Swap in new weights (validated; DecodeError on mismatch) and refold them (tens of ms; int8 also
-        recalibrates: one fp32 and one int8 pass of each net on the calibration scene)."""
+        quantises them and measures each net's int8 error: one fp32 and one int8 pass on a 64 px scene)."""
         load_tensors(self.model, tensors)
         self.model.eval()
         self._rebuild()
@@ -212,15 +225,19 @@ class InferenceEngine:
         """Q and angle maps of the named nets only, for one heightmap pair."""
         return _to_maps(self.forward(preprocess(color_hm, depth_hm), primitives, exact))
 
-    def near_ties(self, chosen: Mapping[str, np.ndarray], raw: Mapping[str, np.ndarray]) -> tuple[str, ...]:
+    def tie_tolerance(self, nets: Sequence[str]) -> float:
+        """How close two Q values in these nets' int8 maps may lie and still be in either order in fp32: the
+        tie share of the largest of their int8 error spreads (0 for fp32 and bf16 engines)."""
+        if self.tie_share <= 0.0:
+            return 0.0
+        return self.tie_share * max(getattr(self.nets[p], "error_spread", 0.0) for p in nets)
+
+    def near_ties(self, chosen: Mapping[str, np.ndarray]) -> tuple[str, ...]:
         """The nets to rerun exactly, none unless the best two Q values of the maps a choice is made from
-        (masked) are closer than this engine's numerics can order (tie_fraction of the unmasked maps' std):
-        then every net whose best value is that close to the best."""
-        if self.tie_fraction <= 0.0:
-            return ()
-        tolerance = self.tie_fraction * float(np.concatenate([q.ravel() for q in raw.values()]).std())
+        (masked) are closer than `tie_tolerance`: then every net whose best value is that close to the best."""
+        tolerance = self.tie_tolerance(tuple(chosen))
         flat = np.concatenate([q.ravel() for q in chosen.values()])
-        if flat.size < 2:
+        if tolerance <= 0.0 or flat.size < 2:
             return ()
         second, best = np.partition(flat, flat.size - 2)[-2:]
         if not best - second < tolerance:  # also for NaN: select_action rejects those maps
@@ -285,7 +302,7 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     else:
         raw = engine.infer(color_hm, depth_hm, nets)
         maps, chosen_from = masked(raw)
-        rerun = engine.near_ties(chosen_from, raw.q)
+        rerun = engine.near_ties(chosen_from)
         if rerun:  # int8 cannot order the best two pixels: the fp32 nets they lie in decide
             engine.exact_reruns += 1
             exact = engine.infer(color_hm, depth_hm, rerun, exact=True)

@@ -36,7 +36,7 @@ def model() -> RoManNet:
 
 @pytest.fixture(scope="module")
 def engine(model) -> InferenceEngine:
-    eng = InferenceEngine(model)  # precision "auto": bf16 where native, else fp32
+    eng = InferenceEngine(model)  # precision "auto": bf16 where native, else int8 where it wins, else fp32
     yield eng
     eng.close()
 
@@ -148,7 +148,8 @@ def test_angle_maps_are_in_range(engine, scenes):
 
 
 def test_fast_path_agrees_with_fp32_on_fixed_set(model, engine, scenes):
-    """Same primitive and pixel as the fp32 reference, and Q maps close (bf16 where the CPU has it)."""
+    """Same primitive and pixel as the fp32 reference, and Q maps close ("auto": bf16 where the CPU has it, else
+    int8 on x86 with AVX2, whose maps are within a few % of their std; near ties are rerun in fp32)."""
     for color, depth in scenes:
         rng = np.random.default_rng(0)
         fast, fast_maps = decide(engine, color, depth, False, 0.0, rng, ("push", "pick"), EXPLORATION, True)
@@ -156,7 +157,9 @@ def test_fast_path_agrees_with_fp32_on_fixed_set(model, engine, scenes):
         assert (fast.primitive, fast.row, fast.col) == (ref.primitive, ref.row, ref.col)
         assert fast.angle_rad == pytest.approx(ref.angle_rad, abs=0.02)
         for p in ("push", "pick"):
-            assert np.abs(fast_maps.q[p] - ref_maps.q[p]).max() < 1e-3
+            # int8 under ONEDNN_MAX_CPU_ISA=AVX2 (7-bit weights): up to 0.063 of the map's std measured here
+            tolerance = 0.1 * ref_maps.q[p].std() if engine.precision == "int8" else 1e-3
+            assert np.abs(fast_maps.q[p] - ref_maps.q[p]).max() < tolerance
 
 
 def test_fp32_engine_matches_reference_closely(model, scenes):
@@ -226,6 +229,8 @@ def test_engine_load_state_swaps_weights(scenes, precision, std_fraction):
 
 
 def test_precision_resolution(monkeypatch):
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)  # a limit below bf16 means no native bf16
+    monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
     assert resolve_precision("fp32") == "fp32"
     monkeypatch.setattr(policy, "cpu_bf16_flags", lambda: ())
     assert resolve_precision("auto") == "fp32"
