@@ -185,10 +185,6 @@ class RewardConfig:
     zero_reward_support: Literal["kernel", "pixel"] = "kernel"
     occupied_height_m: float = 0.01  # clutter progress: a pixel is occupied above this height
     progress_tolerance: float = 0.02  # a progress drop larger than this is a reversal (reward 0)
-    # The reward of a place: "tallest" = W X, X = the tallest stack grew (the paper's); "local" = W h / goal,
-    # h the stack the cube came to rest on (0 if it rests on the floor): a label the pixel's neighbourhood
-    # decides, and the argmax over pixels prefers the taller stack (SPOT and the authors' code scale by height).
-    place_reward: Literal["tallest", "local"] = "tallest"
 
     def __post_init__(self) -> None:
         for name in ("push_weight", "pick_weight", "place_weight"):
@@ -205,8 +201,6 @@ class RewardConfig:
                 "must be in (0, 0.2) m")
         require(0.0 <= self.progress_tolerance < 0.5, "reward.progress_tolerance", self.progress_tolerance,
                 "must be in [0, 0.5)")
-        require(self.place_reward in ("tallest", "local"), "reward.place_reward", self.place_reward,
-                "must be 'tallest' or 'local'")
 
     @property
     def sigma_x_px(self) -> float:

@@ -11,9 +11,7 @@ apply these.
   measured on the heightmap (common.stack, cubes) over task.goal_stack_height.
 - judging a step: X as the primitive reported it, except that a place counts only if the measured stack
   grew ("stack_not_higher"); R_tp = W X P_after, 0 when P dropped by more than reward.progress_tolerance
-  (common.reward); a success ends the streak of consecutive failures. With reward.place_reward = "local" a
-  place's reward is W h / goal instead, h the stack under the placed pixel when the place raised it by coming
-  to rest on at least one cube, else 0 (place_progress); X and the episode's end stay as above.
+  (common.reward); a success ends the streak of consecutive failures.
 - done reason, first that holds: "unstable", "done" (stacking: the stack reached the goal; removal: the
   scene is empty), "consecutive_failures" (sim.max_consecutive_failures), "step_limit" (sim.max_steps);
   "" while the episode goes on.
@@ -32,7 +30,7 @@ from .action import Action
 from .config import RewardConfig, TaskConfig
 from .config_sim import SimConfig
 from .reward import progress_reversed, task_progress_reward
-from .stack import local_stack_height, stack_height
+from .stack import stack_height
 
 TASKS = ("clutter", "arrangement", "stacking")
 
@@ -128,26 +126,6 @@ def step_reward(primitive: str, success: bool, p_before: float, p_after: float, 
     return task_progress_reward(primitive, success, p_after, reward, reversed=reversed_)
 
 
-def place_progress(depth_before: np.ndarray, depth_after: np.ndarray, row: int, col: int, task: TaskConfig,
-                   resolution_m: float) -> float:
-    """P of a place read where the cube went: the stack under pixel (row, col) over the goal height when the
-    place raised it by coming to rest on at least one cube; 0 when it rests on the floor, fell off, or the
-    stack did not grow (common.stack.local_stack_height on the heightmaps before and after)."""
-    below = local_stack_height(depth_before, row, col, task.cube_size_m, resolution_m)
-    after = local_stack_height(depth_after, row, col, task.cube_size_m, resolution_m)
-    if below < 1 or after <= below:
-        return 0.0
-    return stacking_progress(after, task.goal_stack_height)
-
-
-def local_place_reward(p_before: float, p_after: float, local_progress: float, reward: RewardConfig) -> float:
-    """A place's reward under reward.place_reward = "local": W(place) * place_progress, 0 when the tallest
-    stack's P dropped by more than reward.progress_tolerance (the place knocked it down)."""
-    if progress_reversed(p_before, p_after, reward.progress_tolerance):
-        return 0.0
-    return reward.weight("place") * local_progress
-
-
 @dataclass(frozen=True)
 class Judgement:
     """The verdict on one step: X, why it failed, P before and after, R_tp, the failure streak after it."""
@@ -161,20 +139,14 @@ class Judgement:
 
 
 def judge_step(primitive: str, executed: bool, detail: str, before: Measure, after: Measure,
-               consecutive_failures: int, reward: RewardConfig, local_progress: float | None = None) -> Judgement:
+               consecutive_failures: int, reward: RewardConfig) -> Judgement:
     """Judge a step from what the primitive reported (executed, detail; a refusal: False and its reason)
-    and the Measures of the observations before and after it; consecutive_failures: the streak before;
-    local_progress: place_progress of this place, needed under reward.place_reward = "local"."""
+    and the Measures of the observations before and after it; consecutive_failures: the streak before."""
     success = executed
     if primitive == "place" and executed:
         success = after.stack_height > before.stack_height
         detail = "" if success else "stack_not_higher"
-    if primitive == "place" and reward.place_reward == "local":
-        if executed and local_progress is None:
-            raise ValueError('reward.place_reward = "local" needs the place\'s local_progress (place_progress)')
-        r = local_place_reward(before.progress, after.progress, float(local_progress), reward) if executed else 0.0
-    else:
-        r = step_reward(primitive, success, before.progress, after.progress, reward)
+    r = step_reward(primitive, success, before.progress, after.progress, reward)
     streak = 0 if success else consecutive_failures + 1
     return Judgement(success, detail, before.progress, after.progress, r, streak)
 

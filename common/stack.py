@@ -39,20 +39,3 @@ def filtered_heightmap(depth_hm: np.ndarray, median_ksize: int = 5) -> np.ndarra
         raise ValueError(f"median_ksize must be one of {_FLOAT_MEDIAN_KSIZES} (cv2 on float32); got {median_ksize}")
     return cv2.medianBlur(_as_heightmap(depth_hm), median_ksize)
 
-
-
-def local_stack_height(depth_hm: np.ndarray, row: int, col: int, cube_size_m: float, resolution_m: float,
-                       median_ksize: int = 5) -> int:
-    """Cubes in the stack under pixel (row, col): the filtered heightmap's highest value within half a cube
-    edge of the pixel, in cubes (0 on the bare floor). A cube placed at the pixel rests inside that square
-    whether it landed on a stack or beside it, so the count before and after a place says where it went."""
-    if not cube_size_m > 0:
-        raise ValueError(f"cube_size_m must be > 0; got {cube_size_m}")
-    if not resolution_m > 0:
-        raise ValueError(f"resolution_m must be > 0; got {resolution_m}")
-    hm = filtered_heightmap(depth_hm, median_ksize)
-    if not (0 <= row < hm.shape[0] and 0 <= col < hm.shape[1]):
-        raise ValueError(f"pixel ({row}, {col}) is outside the {hm.shape[0]} x {hm.shape[1]} heightmap")
-    r = max(1, round(cube_size_m / 2 / resolution_m))
-    patch = hm[max(0, row - r):row + r + 1, max(0, col - r):col + r + 1]
-    return max(0, int(np.rint(float(patch.max()) / cube_size_m)))

@@ -4,7 +4,6 @@ inspect`, steps, `export`, `rescore` and the X/P/R re-scoring math. Files come f
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
@@ -276,11 +275,6 @@ def test_heightmap_success_and_rescore_step() -> None:
     stacking = TaskConfig(kind="stacking", goal_stack_height=2)
     s = rescore_step("place", True, stack1, stack2, stack1, stacking, RewardConfig(), rule, res)
     assert (s.success, s.progress_before, s.progress_after, s.reward) == (True, 0.5, 1.0, 1.0)
-    local = dataclasses.replace(RewardConfig(), place_reward="local")
-    s = rescore_step("place", True, stack1, stack2, stack1, stacking, local, rule, res, pixel=(6, 6))
-    assert (s.success, s.reward) == (True, 1.0)  # onto the lone cube: local height 2 of goal 2
-    with pytest.raises(ValueError, match="pixel"):
-        rescore_step("place", True, stack1, stack2, stack1, stacking, local, rule, res)
 
 
 def test_playback_delays_follow_recorded_time() -> None:

@@ -35,7 +35,6 @@ from romannet.common.episode_rules import (
     judge_step,
     measure,
     occupied_fraction,
-    place_progress,
     refusal,
 )
 from romannet.common.errors import RobotError
@@ -191,7 +190,7 @@ class RealEnv:
         if self._episode_over:
             raise RuntimeError("the episode is over (or never started): call reset() first")
         self.steps += 1
-        before, depth_before = self.measured, self.obs.depth_hm
+        before = self.measured
         reason = refusal(action, self.primitives, self.holding, self.obs.depth_hm.shape)
         result = MotionResult(False, reason) if reason else self._execute(action)
         if result.stopped:
@@ -202,11 +201,8 @@ class RealEnv:
             self.holding = self.robot.holding()
         self.obs = self.observe(holding=self.holding)
         self.measured = after = self._measure(self.obs)
-        local = (place_progress(depth_before, self.obs.depth_hm, action.row, action.col, self.cfg.task,
-                                self.ws.resolution_m)
-                 if action.primitive == "place" and not reason and self.cfg.reward.place_reward == "local" else None)
         judged = judge_step(action.primitive, result.success, result.reason, before, after,
-                            self.consecutive_failures, self.cfg.reward, local)
+                            self.consecutive_failures, self.cfg.reward)
         self.consecutive_failures = judged.consecutive_failures
         empty = after.occupied < self.cfg.robot.empty_occupied_fraction
         ended = done_reason(goal_reached(self.cfg.task, after.stack_height, empty), self.consecutive_failures,

@@ -23,15 +23,7 @@ import numpy as np
 from romannet.common.action import Action, patch_max, pixel_to_position
 from romannet.common.config import CameraConfig, Config, RewardConfig, TaskConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
-from romannet.common.episode_rules import (
-    Measure,
-    done_reason,
-    goal_reached,
-    judge_step,
-    measure,
-    place_progress,
-    refusal,
-)
+from romannet.common.episode_rules import Measure, done_reason, goal_reached, judge_step, measure, refusal
 from romannet.common.interfaces import Observation, StepResult
 from romannet.common.stack import stack_height
 
@@ -188,7 +180,7 @@ class SimEnv:
         if self._episode_over:
             raise RuntimeError("the episode is over (or never started): call reset() first")
         self.steps += 1
-        before, depth_before = self.measured, self.obs.depth_hm
+        before = self.measured
         reason = refusal(action, self.primitives, self.holding, self.obs.depth_hm.shape)
         result = PrimitiveResult(False, reason, 0) if reason else self._execute(action)
         if action.primitive == "pick" and not reason:
@@ -202,11 +194,8 @@ class SimEnv:
         unstable = result.unstable or self.scene.instability()
         self.obs = self._observe()
         self.measured = self._measure(self.obs.depth_hm)
-        local = (place_progress(depth_before, self.obs.depth_hm, action.row, action.col, self.task,
-                                self.ws.resolution_m)
-                 if action.primitive == "place" and not reason and self.reward_cfg.place_reward == "local" else None)
         judged = judge_step(action.primitive, result.success, result.reason, before, self.measured,
-                            self.consecutive_failures, self.reward_cfg, local)
+                            self.consecutive_failures, self.reward_cfg)
         self.consecutive_failures = judged.consecutive_failures
 
         in_workspace, height_gt = objects_in_workspace(self.scene), self.stack_height_gt()  # once per step

@@ -17,8 +17,7 @@ depth heightmaps, or taken as recorded:
 `source` picks: "auto" (default) push and place from the heightmaps, pick as the robot recorded it (its
 finger gap after closing); "heightmap" all three from the heightmaps; "recorded" all as recorded.
 
-R_tp = W(primitive) * X * P_after, 0 when progress reversed (common.episode_rules.step_reward); a place
-under reward.place_reward = "local" earns W h / goal, h the stack it came to rest on (place_progress). The
+R_tp = W(primitive) * X * P_after, 0 when progress reversed (common.episode_rules.step_reward). The
 Gaussian of TPG is applied by the learner when it builds labels, from its own [reward] section.
 """
 
@@ -32,13 +31,7 @@ import numpy as np
 
 from romannet.common.config import RewardConfig, TaskConfig
 from romannet.common.configbase import require
-from romannet.common.episode_rules import (
-    local_place_reward,
-    occupied_pixels,
-    place_progress,
-    step_reward,
-    task_progress,
-)
+from romannet.common.episode_rules import occupied_pixels, step_reward, task_progress
 from romannet.common.stack import stack_height
 
 
@@ -104,9 +97,8 @@ def heightmap_success(primitive: str, depth_before: np.ndarray, depth_after: np.
 
 def rescore_step(primitive: str, recorded_success: bool, depth_before: np.ndarray, depth_after: np.ndarray,
                  depth_start: np.ndarray, task: TaskConfig, reward: RewardConfig, rule: SuccessRule,
-                 resolution_m: float, pixel: tuple[int, int] | None = None) -> Score:
-    """X, P and R_tp of one recorded step under `reward` (depths: metres above the floor, h x w); pixel:
-    the action's (row, col), which a place's reward needs under reward.place_reward = "local"."""
+                 resolution_m: float) -> Score:
+    """X, P and R_tp of one recorded step under `reward` (depths: metres above the floor, h x w)."""
     if rule.judged_from_heightmaps(primitive):
         success = heightmap_success(primitive, depth_before, depth_after, rule, resolution_m,
                                     reward.occupied_height_m, task.cube_size_m)
@@ -114,9 +106,4 @@ def rescore_step(primitive: str, recorded_success: bool, depth_before: np.ndarra
         success = bool(recorded_success)
     p_before = task_progress(depth_before, depth_start, task, reward)
     p_after = task_progress(depth_after, depth_start, task, reward)
-    if primitive == "place" and reward.place_reward == "local":
-        if pixel is None:
-            raise ValueError('reward.place_reward = "local" needs the place\'s pixel to re-score it')
-        local = place_progress(depth_before, depth_after, pixel[0], pixel[1], task, resolution_m)
-        return Score(success, p_before, p_after, local_place_reward(p_before, p_after, local, reward))
     return Score(success, p_before, p_after, step_reward(primitive, success, p_before, p_after, reward))
