@@ -37,6 +37,7 @@ RETIRED: dict[str, Any] = {
     "learner.rotation_failure_weight": 0.0,
     "model.global_context": False,
     "exploration.q_smoothing_sigma_px": 0.0,
+    "reward.place_reward": "tallest",
 }
 # Fields a saved config may lack, and what it ran with then: it was saved before the field existed, or while
 # samples_per_insert's "no ratio limit" was an unset value that TOML cannot write. A saved config fills them in
