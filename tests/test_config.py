@@ -177,8 +177,13 @@ def test_an_unknown_field_names_the_near_miss():
         load_config(overrides=["sim.zzz=1"])
 
 
-def _other_than(value: object) -> object:
-    return (not value) if isinstance(value, bool) else value + 1  # type: ignore[operator]
+def _other_than(value: object) -> str:
+    """An override value (TOML text) other than a retired field's kept value."""
+    if isinstance(value, bool):
+        return str(not value).lower()
+    if isinstance(value, str):
+        return f'"{value}-other"'
+    return str(value + 1)  # type: ignore[operator]
 
 
 def test_a_saved_config_naming_a_removed_field_loads_at_its_old_default():
@@ -197,7 +202,7 @@ def test_a_saved_config_naming_a_removed_field_loads_at_its_old_default():
         line = tomli_w.dumps({name: kept})
         assert load_config_text(saved.replace(f"[{section}]\n", f"[{section}]\n{line}", 1)) == Config()
         with pytest.raises(ConfigError, match=rf"'{key}' = .*this option was removed"):
-            load_config(overrides=[f"{key}={str(_other_than(kept)).lower()}"])
+            load_config(overrides=[f"{key}={_other_than(kept)}"])
     assert without_retired({"model": {"channels": 32, "dropout": 0.0}}) == {"model": {"channels": 32}}
     for package in sorted((Path(__file__).resolve().parents[1] / "models").glob("*/config.toml")):
         load_config(package)  # written before some fields were removed
