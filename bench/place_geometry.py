@@ -24,7 +24,7 @@ TURNS_DEG = (0.0, 22.5, 45.0)
 DIRECTIONS_DEG = (0.0, 45.0)  # the offset along a face and along the diagonal
 
 
-def _pick_centre(env: SimEnv, body: int) -> float | None:
+def pick_centre(env: SimEnv, body: int) -> float | None:
     """Pick `body` at its centre, closing across two faces; the held cube's hang, None if it was not held."""
     assert env.prims is not None
     pos, orn = env.scene.pose(body)
@@ -32,7 +32,8 @@ def _pick_centre(env: SimEnv, body: int) -> float | None:
     return result.hang_m if result.success else None
 
 
-def _place_on(env: SimEnv, below: int, hang_m: float, offset_m: float, turn_deg: float, direction_deg: float) -> None:
+def place_on(env: SimEnv, below: int, hang_m: float, offset_m: float, turn_deg: float, direction_deg: float) -> None:
+    """Place the held cube offset_m from the top of `below` (direction_deg from its faces), turned turn_deg."""
     assert env.prims is not None
     pos, orn = env.scene.pose(below)
     yaw = yaw_of(orn)
@@ -49,11 +50,11 @@ def place_holds(env: SimEnv, seed: int, base: int, offset_m: float, turn_deg: fl
     cubes = list(env.scene.objects)
     below = cubes[0]
     for k in range(1, base + 1):
-        hang = _pick_centre(env, cubes[k])
+        hang = pick_centre(env, cubes[k])
         if hang is None:
             return None
         last = k == base
-        _place_on(env, below, hang, offset_m if last else 0.0, turn_deg if last else 0.0,
+        place_on(env, below, hang, offset_m if last else 0.0, turn_deg if last else 0.0,
                   direction_deg if last else 0.0)
         if not last:
             if stack_height_from_poses(env.scene, cube_size_m) != k + 1:

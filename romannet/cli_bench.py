@@ -27,6 +27,13 @@ def _numbers(text: str, option: str, kind: type, count: int | None = None) -> li
     return values
 
 
+def _hands_sizes_robot(args: argparse.Namespace) -> tuple[tuple[str, ...], tuple[float, ...], str]:
+    """The geometry benchmarks' --hands and --cube-sizes lists, and the robot mode (the last of --robots)."""
+    hands = tuple(h.strip() for h in args.hands.split(",") if h.strip())
+    sizes = tuple(float(c) for c in args.cube_sizes.split(",") if c.strip())
+    return hands, sizes, args.robots.split(",")[-1].strip()
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "inference":
         from romannet.bench.inference import run_inference_benchmark
@@ -53,18 +60,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "pick-geometry":
         from romannet.bench.pick_geometry import markdown, run_pick_geometry_benchmark
 
-        hands = tuple(h.strip() for h in args.hands.split(",") if h.strip())
-        sizes = tuple(float(c) for c in args.cube_sizes.split(",") if c.strip())
-        robot = args.robots.split(",")[-1].strip()
+        hands, sizes, robot = _hands_sizes_robot(args)
         result = run_pick_geometry_benchmark(hands=hands, cube_sizes_m=sizes, robot=robot, seed=args.seed)
         result["markdown"] = markdown(result)
     elif args.what == "place-geometry":
         from romannet.bench.place_geometry import markdown as place_markdown
         from romannet.bench.place_geometry import run_place_geometry_benchmark
 
-        hands = tuple(h.strip() for h in args.hands.split(",") if h.strip())
-        sizes = tuple(float(c) for c in args.cube_sizes.split(",") if c.strip())
-        result = run_place_geometry_benchmark(hands=hands, cube_sizes_m=sizes, robot=args.robots.split(",")[-1].strip(),
+        hands, sizes, robot = _hands_sizes_robot(args)
+        result = run_place_geometry_benchmark(hands=hands, cube_sizes_m=sizes, robot=robot,
                                               seeds=(args.seed, args.seed + 1))
         result["markdown"] = place_markdown(result)
     elif args.what == "fuzz":

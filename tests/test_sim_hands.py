@@ -4,15 +4,14 @@ own force and speed; sim.finger_* override the hand's values. A 9 cm cube the Pa
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 import pytest
 
 from romannet.actor.sim.env import SimEnv
 from romannet.actor.sim.objects import ObjectSpec, spawn_object
-from romannet.actor.sim.scene import yaw_of
 from romannet.actor.sim.tasks import stack_height_from_poses
+from romannet.bench.place_geometry import pick_centre, place_on
 from romannet.common.action import Action, position_to_pixel
 from romannet.common.config import as_saved, load_config
 from romannet.common.config_sim import HANDS, SimConfig
@@ -102,31 +101,21 @@ def _stacking_env(hand: str, *overrides: str) -> SimEnv:
     return SimEnv.from_config(cfg)
 
 
-def _pick_centre(env: SimEnv, body: int) -> float:
-    """Pick a cube at its centre, the closing axis along its faces; the hang of the held cube."""
-    assert env.prims is not None
-    pos, orn = env.scene.pose(body)
-    result = env.prims.pick(float(pos[0]), float(pos[1]), env.scene.top_z(body), yaw_of(orn))
-    assert result.success, result.reason
-    return result.hang_m
-
-
 @pytest.mark.parametrize("hand", ["panda", "rg2"])
 def test_coupled_fingers_hold_a_cube_centred_and_place_it_where_asked(hand: str) -> None:
     with _stacking_env(hand) as env:
         env.reset(0)
         assert env.sim.coupled_fingers and env.prims is not None and env.arm is not None
         first, second, third = env.scene.objects[:3]
-        hang = _pick_centre(env, second)
+        hang = pick_centre(env, second)
+        assert hang is not None
         held_xy, tip_xy = env.scene.pose(second)[0][:2], env.arm.tip_position()[:2]
         assert float(np.linalg.norm(held_xy - tip_xy)) < 0.003  # centred between the fingers
         # Built into a 2-stack, then a third cube placed 1 cm off its top's centre along a face: it stays.
-        pos, orn = env.scene.pose(first)
-        env.prims.place(float(pos[0]), float(pos[1]), env.scene.top_z(first), yaw_of(orn), hang)
-        hang = _pick_centre(env, third)
-        pos, orn = env.scene.pose(second)
-        x, y = float(pos[0]) + 0.01 * math.cos(yaw_of(orn)), float(pos[1]) + 0.01 * math.sin(yaw_of(orn))
-        env.prims.place(x, y, env.scene.top_z(second), yaw_of(orn), hang)
+        place_on(env, first, hang, 0.0, 0.0, 0.0)
+        hang = pick_centre(env, third)
+        assert hang is not None
+        place_on(env, second, hang, 0.01, 0.0, 0.0)
         assert stack_height_from_poses(env.scene, 0.04) == 3
 
 
