@@ -149,8 +149,8 @@ class ModelConfig:
     # reward, and its peaks come from what was learned. (Not zero: a flat map gives the argmax and the
     # exploration candidates no order but the pixel index, and failures, labelled 0, give it no gradient.)
     q_head_init: Literal["default", "small"] = "small"
-    # Inference numerics: "auto" picks bf16 where the CPU computes it natively, else int8 where oneDNN runs it
-    # with AVX2 or more (near ties rerun in fp32), else fp32; "int8": the trunk in int8 (common/int8net.py).
+    # Inference numerics: "auto" picks bf16 where the CPU computes it natively, else fp32; "int8": the trunk in
+    # int8 (common/int8net.py, near ties rerun in fp32).
     precision: Literal["auto", "fp32", "bf16", "int8"] = "auto"
     channels_last: bool = True
     num_threads: int = 0  # 0 = torch's default (one per core)
@@ -163,7 +163,7 @@ class ModelConfig:
         require(self.q_head_init in ("default", "small"), "model.q_head_init", self.q_head_init,
                 "must be 'default' (PyTorch's init) or 'small' (that init times 0.01: Q maps start near 0)")
         require(self.precision in ("auto", "fp32", "bf16", "int8"), "model.precision", self.precision,
-                "must be 'auto' (bf16 where native, else int8 where it wins, else fp32), 'fp32', 'bf16' or 'int8'")
+                "must be 'auto' (bf16 where native, else fp32), 'fp32', 'bf16' or 'int8'")
         require(self.num_threads >= 0, "model.num_threads", self.num_threads, "must be >= 0 (0 = torch default)")
 
 

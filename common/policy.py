@@ -120,14 +120,12 @@ def resolve_precision(precision: str) -> str:
 
 
 def resolve_inference_precision(precision: str) -> str:
-    """model.precision for the actor's decisions: "fp32", "bf16" or "int8". "auto": bf16 where native; else int8
-    where oneDNN runs it with AVX2 or more (int8_wins: with its near ties rerun in fp32 it kept >= 0.99 of fp32's
-    decisions on random-init and shipped trained nets at 0.70-0.87 of fp32's mean decision time,
-    docs/benchmarks.md); else fp32."""
+    """model.precision for the actor's decisions: "fp32", "bf16" or "int8". "auto": bf16 where native, else fp32.
+    Not int8: it keeps >= 0.99 of fp32's decisions at 0.70-0.87 of fp32's decision time, but a weight swap costs
+    ~3x fp32's (it measures each net's int8 error) and an actor swaps after every learner update; what that
+    nets on an AVX2 robot is not measured (docs/benchmarks.md)."""
     if precision == "auto":
-        if native_bf16():
-            return "bf16"
-        return "int8" if int8_wins() else "fp32"
+        return "bf16" if native_bf16() else "fp32"
     if precision == "int8":
         if not int8_ops_available():
             raise ValueError("precision 'int8' needs oneDNN's int8 convolutions (torch.ops.onednn.qconv2d_pointwise"

@@ -36,7 +36,7 @@ def model() -> RoManNet:
 
 @pytest.fixture(scope="module")
 def engine(model) -> InferenceEngine:
-    eng = InferenceEngine(model)  # precision "auto": bf16 where native, else int8 where it wins, else fp32
+    eng = InferenceEngine(model)  # precision "auto": bf16 where native, else fp32
     yield eng
     eng.close()
 
