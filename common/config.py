@@ -184,12 +184,6 @@ class RewardConfig:
     # whole support, as a success's reward is spread; "pixel" = at the executed pixel only, as VPG and the
     # R_tp ablation (R_tp (*) G of a zero reward is zero everywhere: the paper does not say where it applies).
     zero_reward_support: Literal["kernel", "pixel"] = "kernel"
-    # A successful place's reward times 1 - (d / a)^2 (common.stack.centring_factor): d from the place pixel to
-    # the centre of the top face under it, a that face's half-width, both read off the heightmap before the
-    # place. A binary place reward is flat over the whole face, so the argmax lands anywhere on it, edges
-    # included, where places fall off; this makes the face's centre the peak, as grasp-quality maps peak
-    # at a grasp's centre (GG-CNN, GR-ConvNet). Stacking only.
-    place_centring: bool = False
     occupied_height_m: float = 0.01  # clutter progress: a pixel is occupied above this height
     progress_tolerance: float = 0.02  # a progress drop larger than this is a reversal (reward 0)
 

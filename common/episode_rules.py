@@ -11,8 +11,7 @@ apply these.
   measured on the heightmap (common.stack, cubes) over task.goal_stack_height.
 - judging a step: X as the primitive reported it, except that a place counts only if the measured stack
   grew ("stack_not_higher"); R_tp = W X P_after, 0 when P dropped by more than reward.progress_tolerance
-  (common.reward), a place's times its centring factor with reward.place_centring; a success ends the
-  streak of consecutive failures.
+  (common.reward); a success ends the streak of consecutive failures.
 - done reason, first that holds: "unstable", "done" (stacking: the stack reached the goal; removal: the
   scene is empty), "consecutive_failures" (sim.max_consecutive_failures), "step_limit" (sim.max_steps);
   "" while the episode goes on.
@@ -31,12 +30,9 @@ from .action import Action
 from .config import RewardConfig, TaskConfig
 from .config_sim import SimConfig
 from .reward import progress_reversed, task_progress_reward
-from .stack import centring_factor, stack_height, top_face_offset
+from .stack import stack_height
 
 TASKS = ("clutter", "arrangement", "stacking")
-# A place lowers the held object onto the highest point within this radius of its pixel (the held object's
-# footprint, roughly): every environment places so, and place_centring reads the face under that point.
-PLACE_PATCH_RADIUS_M = 0.015
 
 
 # ------------------------------------------------------------------------------------------ refusal
@@ -142,30 +138,15 @@ class Judgement:
     consecutive_failures: int
 
 
-def place_centring(primitive: str, row: int, col: int, depth_before: np.ndarray, task: TaskConfig,
-                   reward: RewardConfig, resolution_m: float) -> float:
-    """The factor on the reward of a place at pixel (row, col) for how near the centre of the top face under it
-    it aimed (reward.place_centring; common.stack.centring_factor); 1 when off, for other primitives, or with
-    no cube under the pixel."""
-    if not reward.place_centring or primitive != "place" or task.kind != "stacking":
-        return 1.0
-    offset = top_face_offset(depth_before, row, col, resolution_m, task.cube_size_m,
-                             PLACE_PATCH_RADIUS_M)
-    return 1.0 if offset is None else centring_factor(*offset)
-
-
 def judge_step(primitive: str, executed: bool, detail: str, before: Measure, after: Measure,
-               consecutive_failures: int, reward: RewardConfig, centring: float = 1.0) -> Judgement:
+               consecutive_failures: int, reward: RewardConfig) -> Judgement:
     """Judge a step from what the primitive reported (executed, detail; a refusal: False and its reason)
-    and the Measures of the observations before and after it; consecutive_failures: the streak before;
-    centring: place_centring's factor on a place's reward."""
+    and the Measures of the observations before and after it; consecutive_failures: the streak before."""
     success = executed
     if primitive == "place" and executed:
         success = after.stack_height > before.stack_height
         detail = "" if success else "stack_not_higher"
     r = step_reward(primitive, success, before.progress, after.progress, reward)
-    if primitive == "place":
-        r *= centring
     streak = 0 if success else consecutive_failures + 1
     return Judgement(success, detail, before.progress, after.progress, r, streak)
 

@@ -25,8 +25,6 @@ from romannet.common.episode_file import (
     episode_paths,
     read_episode,
 )
-from romannet.common.episode_rules import PLACE_PATCH_RADIUS_M
-from romannet.common.stack import centring_factor, top_face_offset
 from romannet.common.wire import decode_transition
 from romannet.mcaptools.play import PlayOptions, delay_s
 from romannet.mcaptools.rescore import rescored_id
@@ -277,10 +275,6 @@ def test_heightmap_success_and_rescore_step() -> None:
     stacking = TaskConfig(kind="stacking", goal_stack_height=2)
     s = rescore_step("place", True, stack1, stack2, stack1, stacking, RewardConfig(), rule, res)
     assert (s.success, s.progress_before, s.progress_after, s.reward) == (True, 0.5, 1.0, 1.0)
-    centred = RewardConfig(place_centring=True)  # graded as the environments grade it
-    s = rescore_step("place", True, stack1, stack2, stack1, stacking, centred, rule, res, pixel=(5, 5))
-    offset = top_face_offset(stack1, 5, 5, res, stacking.cube_size_m, PLACE_PATCH_RADIUS_M)
-    assert s.success and s.reward == pytest.approx(centring_factor(*offset)) and s.reward < 1.0
 
 
 def test_playback_delays_follow_recorded_time() -> None:

@@ -29,14 +29,12 @@ import numpy as np
 from romannet.common.action import Action, patch_max, pixel_to_position
 from romannet.common.config import Config, WorkspaceConfig
 from romannet.common.episode_rules import (
-    PLACE_PATCH_RADIUS_M,
     Measure,
     done_reason,
     goal_reached,
     judge_step,
     measure,
     occupied_fraction,
-    place_centring,
     refusal,
 )
 from romannet.common.errors import RobotError
@@ -47,6 +45,7 @@ from romannet.common.stack import stack_height
 log = logging.getLogger(__name__)
 
 PUSH_PATCH_RADIUS_M = 0.012  # as the simulator: the push starts above the highest point around the pixel
+PLACE_PATCH_RADIUS_M = 0.015  # the held object is lowered onto the highest point around the pixel
 RESET_POLL_S = 2.0
 
 
@@ -193,9 +192,6 @@ class RealEnv:
         self.steps += 1
         before = self.measured
         reason = refusal(action, self.primitives, self.holding, self.obs.depth_hm.shape)
-        centring = 1.0 if reason else place_centring(action.primitive, action.row, action.col,
-                                                     self.obs.depth_hm, self.cfg.task, self.cfg.reward,
-                                                     self.ws.resolution_m)
         result = MotionResult(False, reason) if reason else self._execute(action)
         if result.stopped:
             return self._stopped(action, result, before.progress)
@@ -206,7 +202,7 @@ class RealEnv:
         self.obs = self.observe(holding=self.holding)
         self.measured = after = self._measure(self.obs)
         judged = judge_step(action.primitive, result.success, result.reason, before, after,
-                            self.consecutive_failures, self.cfg.reward, centring)
+                            self.consecutive_failures, self.cfg.reward)
         self.consecutive_failures = judged.consecutive_failures
         empty = after.occupied < self.cfg.robot.empty_occupied_fraction
         ended = done_reason(goal_reached(self.cfg.task, after.stack_height, empty), self.consecutive_failures,

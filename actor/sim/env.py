@@ -23,16 +23,7 @@ import numpy as np
 from romannet.common.action import Action, patch_max, pixel_to_position
 from romannet.common.config import CameraConfig, Config, RewardConfig, TaskConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
-from romannet.common.episode_rules import (
-    PLACE_PATCH_RADIUS_M,
-    Measure,
-    done_reason,
-    goal_reached,
-    judge_step,
-    measure,
-    place_centring,
-    refusal,
-)
+from romannet.common.episode_rules import Measure, done_reason, goal_reached, judge_step, measure, refusal
 from romannet.common.interfaces import Observation, StepResult
 from romannet.common.stack import stack_height
 
@@ -54,6 +45,7 @@ PICK_REACH_RADIUS_M = 0.05
 # ... and the hand, 21 cm long along the closing axis, has its underside 4.6 cm above the fingertips.
 HAND_REACH_RADIUS_M = 0.11
 HAND_ABOVE_TIPS_M = 0.045
+PLACE_PATCH_RADIUS_M = 0.015  # the held object's footprint, roughly: it is lowered onto the highest point
 
 
 class SimEnv:
@@ -190,9 +182,6 @@ class SimEnv:
         self.steps += 1
         before = self.measured
         reason = refusal(action, self.primitives, self.holding, self.obs.depth_hm.shape)
-        centring = 1.0 if reason else place_centring(action.primitive, action.row, action.col,
-                                                     self.obs.depth_hm, self.task, self.reward_cfg,
-                                                     self.ws.resolution_m)
         result = PrimitiveResult(False, reason, 0) if reason else self._execute(action)
         if action.primitive == "pick" and not reason:
             self.picks += 1
@@ -206,7 +195,7 @@ class SimEnv:
         self.obs = self._observe()
         self.measured = self._measure(self.obs.depth_hm)
         judged = judge_step(action.primitive, result.success, result.reason, before, self.measured,
-                            self.consecutive_failures, self.reward_cfg, centring)
+                            self.consecutive_failures, self.reward_cfg)
         self.consecutive_failures = judged.consecutive_failures
 
         in_workspace, height_gt = objects_in_workspace(self.scene), self.stack_height_gt()  # once per step

@@ -143,7 +143,7 @@ class _Episode:
             self.depth_start = msg.depth_before
         score = rescore_step(msg.action.primitive, msg.success, msg.depth_before, msg.depth_after,
                              self.depth_start, self.cfg.task, self.reward, self.rule,
-                             self.cfg.workspace.resolution_m, (msg.action.row, msg.action.col))
+                             self.cfg.workspace.resolution_m)
         t = pb.Transition()
         t.ParseFromString(data)
         recorded = pb.Transition()

@@ -31,7 +31,7 @@ import numpy as np
 
 from romannet.common.config import RewardConfig, TaskConfig
 from romannet.common.configbase import require
-from romannet.common.episode_rules import occupied_pixels, place_centring, step_reward, task_progress
+from romannet.common.episode_rules import occupied_pixels, step_reward, task_progress
 from romannet.common.stack import stack_height
 
 
@@ -97,9 +97,8 @@ def heightmap_success(primitive: str, depth_before: np.ndarray, depth_after: np.
 
 def rescore_step(primitive: str, recorded_success: bool, depth_before: np.ndarray, depth_after: np.ndarray,
                  depth_start: np.ndarray, task: TaskConfig, reward: RewardConfig, rule: SuccessRule,
-                 resolution_m: float, pixel: tuple[int, int] = (0, 0)) -> Score:
-    """X, P and R_tp of one recorded step at `pixel` (row, col) under `reward` (depths: metres above the
-    floor, h x w); a place's reward is times place_centring's factor as in the environments."""
+                 resolution_m: float) -> Score:
+    """X, P and R_tp of one recorded step under `reward` (depths: metres above the floor, h x w)."""
     if rule.judged_from_heightmaps(primitive):
         success = heightmap_success(primitive, depth_before, depth_after, rule, resolution_m,
                                     reward.occupied_height_m, task.cube_size_m)
@@ -107,7 +106,4 @@ def rescore_step(primitive: str, recorded_success: bool, depth_before: np.ndarra
         success = bool(recorded_success)
     p_before = task_progress(depth_before, depth_start, task, reward)
     p_after = task_progress(depth_after, depth_start, task, reward)
-    r = step_reward(primitive, success, p_before, p_after, reward)
-    if primitive == "place":
-        r *= place_centring(primitive, pixel[0], pixel[1], depth_before, task, reward, resolution_m)
-    return Score(success, p_before, p_after, r)
+    return Score(success, p_before, p_after, step_reward(primitive, success, p_before, p_after, reward))
