@@ -55,6 +55,12 @@ def position_to_pixel(x_m: float, y_m: float, ws: WorkspaceConfig) -> tuple[int,
     return row, col
 
 
+# Where every environment (the simulator, a real robot) starts a push and lowers a held object: above the
+# highest point within these radii of the action's pixel.
+PUSH_PATCH_RADIUS_M = 0.012  # the closed fingers' footprint
+PLACE_PATCH_RADIUS_M = 0.015  # the held object's footprint, roughly
+
+
 def patch_max(depth_hm: np.ndarray, row: int, col: int, radius_m: float, resolution_m: float) -> float:
     """Highest depth_hm value (m above the floor) within radius_m of pixel (row, col): where a push starts
     above, or a held object is lowered onto."""

@@ -38,6 +38,7 @@ RETIRED: dict[str, Any] = {
     "model.global_context": False,
     "exploration.q_smoothing_sigma_px": 0.0,
     "reward.place_reward": "tallest",
+    "reward.place_centring": False,
 }
 # Fields a saved config may lack, and what it ran with then: it was saved before the field existed, or while
 # samples_per_insert's "no ratio limit" was an unset value that TOML cannot write. A saved config fills them in

@@ -26,7 +26,13 @@ import time
 
 import numpy as np
 
-from romannet.common.action import Action, patch_max, pixel_to_position
+from romannet.common.action import (
+    PLACE_PATCH_RADIUS_M,
+    PUSH_PATCH_RADIUS_M,
+    Action,
+    patch_max,
+    pixel_to_position,
+)
 from romannet.common.config import Config, WorkspaceConfig
 from romannet.common.episode_rules import (
     Measure,
@@ -44,8 +50,6 @@ from romannet.common.stack import stack_height
 
 log = logging.getLogger(__name__)
 
-PUSH_PATCH_RADIUS_M = 0.012  # as the simulator: the push starts above the highest point around the pixel
-PLACE_PATCH_RADIUS_M = 0.015  # the held object is lowered onto the highest point around the pixel
 RESET_POLL_S = 2.0
 
 

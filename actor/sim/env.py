@@ -20,7 +20,13 @@ import time
 
 import numpy as np
 
-from romannet.common.action import Action, patch_max, pixel_to_position
+from romannet.common.action import (
+    PLACE_PATCH_RADIUS_M,
+    PUSH_PATCH_RADIUS_M,
+    Action,
+    patch_max,
+    pixel_to_position,
+)
 from romannet.common.config import CameraConfig, Config, RewardConfig, TaskConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
 from romannet.common.episode_rules import Measure, done_reason, goal_reached, judge_step, measure, refusal
@@ -35,8 +41,7 @@ from .tasks import build_scene, object_specs, objects_in_workspace, stack_height
 
 log = logging.getLogger(__name__)
 
-PUSH_PATCH_RADIUS_M = 0.012  # the closed fingers' footprint: the push starts above the highest point in it
-PUSH_CLEARANCE_M = 0.005  # fingertips this far above that point
+PUSH_CLEARANCE_M = 0.005  # fingertips this far above the highest point within PUSH_PATCH_RADIUS_M of the pixel
 PUSH_MIN_HEIGHT_M = 0.01  # ... and never lower than this above the table (objects are >= 2.5 cm tall)
 # The open fingers reach 4 cm (plus their width) either side of a pick's pixel: the descent slows down above
 # the highest point within this radius, not only above the pixel, so a finger landing on a neighbouring
@@ -45,7 +50,6 @@ PICK_REACH_RADIUS_M = 0.05
 # ... and the hand, 21 cm long along the closing axis, has its underside 4.6 cm above the fingertips.
 HAND_REACH_RADIUS_M = 0.11
 HAND_ABOVE_TIPS_M = 0.045
-PLACE_PATCH_RADIUS_M = 0.015  # the held object's footprint, roughly: it is lowered onto the highest point
 
 
 class SimEnv:
