@@ -56,7 +56,7 @@ from romannet.common.policy import (
 from romannet.common.scenes import SIZE_PX, synthetic_scene
 from romannet.info import cpu_model
 
-from .inference_agreement import agreement, precision_engines, shipped_models_agreement
+from .inference_agreement import agreement, first_line, precision_engines, shipped_models_agreement
 
 logger = logging.getLogger(__name__)
 
@@ -100,10 +100,6 @@ def _summary(samples: list[float]) -> tuple[float, float]:
     return round(statistics.median(samples), 2), round(min(samples), 2)
 
 
-def _first_line(err: Exception) -> str:
-    return str(err).splitlines()[0][:200] if str(err) else type(err).__name__
-
-
 def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[str, dict]:
     """PushNet + PickNet forward only (no selection), one optimisation added at a time: median and min ms.
 
@@ -135,7 +131,7 @@ def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[st
             try:
                 fast = [FastNet(n, precision, fused) for n in nets]
             except RuntimeError as err:
-                unsupported[name] = _first_line(err)
+                unsupported[name] = first_line(err)
                 continue
             variants[name] = lambda fast=fast: [f(x) for f in fast]
     if int8_ops_available():  # the int8 trunk, fp32 first conv, transposed convs and folded heads
@@ -148,7 +144,7 @@ def _ablation(engine: InferenceEngine, x: torch.Tensor, repeats: int) -> dict[st
             try:
                 fn()  # warm-up: oneDNN primitive creation
             except RuntimeError as err:
-                unsupported[name] = _first_line(err)
+                unsupported[name] = first_line(err)
                 del variants[name]
         samples: dict[str, list[float]] = {k: [] for k in variants}
         for _ in range(repeats):

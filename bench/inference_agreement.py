@@ -27,7 +27,8 @@ MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 SHIPPED_MODELS = ("clutter", "stacking")
 
 
-def _first_line(err: Exception) -> str:
+def first_line(err: Exception) -> str:
+    """An error's first line, at most 200 characters (its type's name when it has no text)."""
     return str(err).splitlines()[0][:200] if str(err) else type(err).__name__
 
 
@@ -44,7 +45,7 @@ def precision_engines(model: RoManNet, cfg: ModelConfig, precisions: tuple[str, 
             engine = InferenceEngine(model, replace(cfg, precision=precision))
             engine.forward(torch.zeros(1, 4, 32, 32), ("push",))  # oneDNN's bf16 kernels raise on AVX2-only CPUs
         except (RuntimeError, ValueError) as err:
-            left_out[precision] = _first_line(err)
+            left_out[precision] = first_line(err)
         else:
             engines[precision] = engine
     return engines, left_out
@@ -104,7 +105,7 @@ def shipped_models_agreement(precisions: tuple[str, ...], scenes: list, seed: in
         try:
             model = load_shipped(name, models_dir)
         except (RomannetError, OSError) as err:
-            out[f"models/{name}"] = {"left_out": _first_line(err)}
+            out[f"models/{name}"] = {"left_out": first_line(err)}
             continue
         engines, _ = precision_engines(model, model.cfg, precisions)
         try:

@@ -38,4 +38,3 @@ def filtered_heightmap(depth_hm: np.ndarray, median_ksize: int = 5) -> np.ndarra
     if median_ksize not in _FLOAT_MEDIAN_KSIZES:
         raise ValueError(f"median_ksize must be one of {_FLOAT_MEDIAN_KSIZES} (cv2 on float32); got {median_ksize}")
     return cv2.medianBlur(_as_heightmap(depth_hm), median_ksize)
-
