@@ -26,6 +26,10 @@ class LearnerConfig:
 
     # Optimiser: SGD as in the paper (the paper's "2^-5" weight decay is 2e-5 in the authors' code).
     lr: float = 1e-4
+    # Halve the learning rate every this many updates (arc-l/vft halves it every 2,000 steps), so the late
+    # updates move the greedy argmax less and a frozen checkpoint is the policy training converged to.
+    # 0 = a constant rate (the paper's).
+    lr_halve_every_updates: int = 0
     momentum: float = 0.9
     weight_decay: float = 2e-5
     # Target Y = R_tp + eta * gamma * V(s_{t+1}), eta = 1 iff R_tp > 0.
@@ -97,6 +101,8 @@ class LearnerConfig:
                 "must be 'cpu', 'cuda' or 'cuda:N'")
         require(math.isfinite(self.lr) and 0.0 < self.lr <= 1.0, "learner.lr", self.lr,
                 "must be in (0, 1] (the paper uses 1e-4)")
+        require(0 <= self.lr_halve_every_updates <= 10_000_000, "learner.lr_halve_every_updates",
+                self.lr_halve_every_updates, "must be 0..10000000 updates (0 = a constant learning rate)")
         require(0.0 <= self.momentum < 1.0, "learner.momentum", self.momentum, "must be in [0, 1) (paper: 0.9)")
         require(0.0 <= self.weight_decay < 1.0, "learner.weight_decay", self.weight_decay,
                 "must be in [0, 1) (paper: 2e-5)")

@@ -12,7 +12,7 @@ One `train_step(batch)`:
    times the item's importance-sampling weight, averaged over the batch. Only the executed
    primitives' nets get gradients; the others keep `.grad is None`, so SGD skips them entirely (no weight
    decay, no momentum).
-4. One SGD step; the exploration rate is updated with the paper's L_t (the Huber of the executed pixel's
+4. One SGD step at learner.lr, halved every learner.lr_halve_every_updates (learner/schedule.py); the exploration rate is updated with the paper's L_t (the Huber of the executed pixel's
    TD error, averaged over the batch).
 
 BatchNorm: the nets train in train mode (batch statistics). Even at batch 1 a conv BN layer normalises
@@ -58,6 +58,7 @@ from .losses import (
     rotation_pixel_loss,
     weighted_sum,
 )
+from .schedule import lr_at
 from .targets import bootstrap_value, clip_value, q_label, return_range, rotation_targets, td_target
 
 logger = logging.getLogger(__name__)
@@ -284,6 +285,9 @@ class Trainer:
         loss.backward()
         if cfg.max_grad_norm > 0:  # rescales the whole gradient when its L2 norm is larger (not per tensor)
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm)
+        lr = lr_at(cfg.lr, self.updates, cfg.lr_halve_every_updates)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
         self.optimizer.step()
         self.updates += 1
         if self.target is not None and self.updates % cfg.target_sync_every_updates == 0:
