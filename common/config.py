@@ -39,6 +39,10 @@ RETIRED: dict[str, Any] = {
     "exploration.q_smoothing_sigma_px": 0.0,
     "reward.place_reward": "tallest",
     "reward.place_centring": False,
+    "exploration.action_mask": False,
+    "exploration.mask_min_height_m": 0.01,
+    "exploration.mask_pick_reach_px": 5,
+    "exploration.mask_push_reach_px": 25,
 }
 # Fields a saved config may lack, and what it ran with then: it was saved before the field existed, or while
 # samples_per_insert's "no ratio limit" was an unset value that TOML cannot write. A saved config fills them in
@@ -230,12 +234,6 @@ class ExplorationConfig:
     top_k: int = 10  # action candidates: the top-k local maxima of each allowed net's Q map
     candidate_min_distance_px: int = 5  # local maxima closer than this are one candidate
     random_angle_prob: float = 0.5  # when exploring, draw the angle uniformly with this probability
-    # SPOT's common-sense masks (common/action_mask.py): picks and pushes only where they can touch an object,
-    # places only onto one; the learner's V(s') takes the max over the same pixels.
-    action_mask: bool = False
-    mask_min_height_m: float = 0.01  # a heightmap pixel above this holds something
-    mask_pick_reach_px: int = 5  # a pick this close to something can close on it (1 cm at 2 mm per pixel)
-    mask_push_reach_px: int = 25  # a push starting this close to something can meet it (5 cm at 2 mm)
     # Pixels within this of an action of the same primitive that failed since the episode's last success are
     # not chosen again (common/failure_memory.py): a greedy policy otherwise repeats a failed pick on the scene
     # it did not change until the episode ends; 10 px beat 20 and 0 on 3 checkpoints (docs/results.md). 0: off.
@@ -256,10 +254,8 @@ class ExplorationConfig:
                 self.candidate_min_distance_px, "must be 1..100")
         require(0.0 <= self.random_angle_prob <= 1.0, "exploration.random_angle_prob", self.random_angle_prob,
                 "must be in [0, 1]")
-        require(0.0 < self.mask_min_height_m < 0.2, "exploration.mask_min_height_m", self.mask_min_height_m,
-                "must be in (0, 0.2) m")
-        for name in ("mask_pick_reach_px", "mask_push_reach_px", "failure_memory_px"):
-            require(0 <= getattr(self, name) <= 200, f"exploration.{name}", getattr(self, name), "must be 0..200 px")
+        require(0 <= self.failure_memory_px <= 200, "exploration.failure_memory_px", self.failure_memory_px,
+                "must be 0..200 px")
         require(0.0 <= self.epsilon_min <= self.epsilon_start <= 1.0, "exploration.epsilon_start",
                 self.epsilon_start, "must satisfy 0 <= epsilon_min <= epsilon_start <= 1")
         require(0.0 < self.epsilon_decay <= 1.0, "exploration.epsilon_decay", self.epsilon_decay,

@@ -227,8 +227,8 @@ def select_action(q_maps: dict[str, np.ndarray], angle_maps: dict[str, np.ndarra
         explore_rate: E in [0, 1] (pushed by the learner).
         cfg: top_k, candidate_min_distance_px and random_angle_prob are used.
         rng: the actor's generator; the same seed and maps give the same action.
-        masks: {primitive: bool (h, w)} valid pixels (common.action_mask); the q_maps are already masked
-            (common.action_mask.masked_q) and exploring draws only among valid candidates.
+        masks: {primitive: bool (h, w)} valid pixels (the failure memory's); the q_maps are already masked
+            (common.failure_memory.masked_q) and exploring draws only among valid candidates.
 
     Exploring picks one of action_candidates(...) uniformly (explored=True); with probability
     cfg.random_angle_prob the angle is drawn uniformly from ANGLE_RANGE_RAD[primitive], else read from that

@@ -8,13 +8,13 @@ A greedy policy that is not learning sees nearly the same heightmap after a pick
 chooses the same pixel again and again until the episode ends on consecutive failures. The paper's test
 protocol escapes by training within the run (VPG's test-time learning); a robot running frozen weights
 needs the rule at decision time: pixels within radius_px of an action of the same primitive that failed
-since the last success are not chosen (the masks join common/action_mask's: masked_q sinks them, and
-exploration draws among the rest). Any success changed the scene, so it clears the memory.
+since the last success are not chosen (masked_q sinks them below every other pixel, and exploration
+draws among the rest). Any success changed the scene, so it clears the memory.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,19 +40,13 @@ def failure_masks(failed: Iterable[tuple[str, int, int]], primitives: Iterable[s
     return out if any(not m.all() for m in out.values()) else None
 
 
-def join_masks(masks: Mapping[str, np.ndarray] | None,
-               avoid: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray] | None:
-    """Pixels valid in both (either may be None: no restriction); a primitive left with no valid pixel keeps
-    the first's, so avoiding a failure never leaves the policy without an action."""
-    if avoid is None:
-        return None if masks is None else dict(masks)
-    if masks is None:
-        return dict(avoid)
-    out = {}
-    for prim, mask in masks.items():
-        both = mask & avoid[prim] if prim in avoid else mask
-        out[prim] = both if both.any() else mask
-    return out
+def masked_q(q: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """q with the masked-out pixels set just below its smallest valid value (finite, so the argmax and the
+    local-maximum search work unchanged)."""
+    if mask.all():
+        return q
+    floor = float(q[mask].min()) - 1.0
+    return np.where(mask, q, np.float32(floor)).astype(q.dtype, copy=False)
 
 
 @dataclass

@@ -22,10 +22,9 @@ import torch
 from torch import Tensor
 
 from .action import Action
-from .action_mask import action_masks, masked_q
 from .config import ExplorationConfig, ModelConfig
 from .exploration import select_action
-from .failure_memory import FailureMemory, join_masks
+from .failure_memory import FailureMemory, masked_q
 from .fastnet import FastNet, fused_ops_available
 from .int8net import Int8Net, int8_ops_available, int8_weight_bits
 from .model import RoManNet, decode_rotation, load_tensors, preprocess
@@ -283,17 +282,12 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     """
     nets = nets_to_run(holding, primitives)
     engine = model if isinstance(model, InferenceEngine) else None
-    masks = None
-    if exploration_cfg.action_mask:  # masked pixels sink below every valid Q (V = max Q sees them too)
-        masks = action_masks(depth_hm, nets, exploration_cfg)
     avoided = None if avoid is None else avoid.masks(nets, depth_hm.shape)
-    chosen_masks = masks if avoided is None else join_masks(masks, avoided)
 
     def masked(raw: PolicyMaps) -> tuple[PolicyMaps, dict[str, np.ndarray]]:
-        shown = raw if masks is None else PolicyMaps({p: masked_q(q, masks[p]) for p, q in raw.q.items()},
-                                                     raw.angle)
-        chosen = shown.q if avoided is None else {p: masked_q(q, chosen_masks[p]) for p, q in shown.q.items()}
-        return shown, chosen
+        """The maps as computed, and the Q maps the decision chooses from (the avoided pixels sunk)."""
+        chosen = raw.q if avoided is None else {p: masked_q(q, avoided[p]) for p, q in raw.q.items()}
+        return raw, chosen
 
     if engine is None:
         maps, chosen_from = masked(reference_maps(model, color_hm, depth_hm, nets))
@@ -305,5 +299,5 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
             engine.exact_reruns += 1
             exact = engine.infer(color_hm, depth_hm, rerun, exact=True)
             maps, chosen_from = masked(PolicyMaps({**raw.q, **exact.q}, {**raw.angle, **exact.angle}))
-    action = select_action(chosen_from, maps.angle, explore_rate, exploration_cfg, rng, chosen_masks)
+    action = select_action(chosen_from, maps.angle, explore_rate, exploration_cfg, rng, avoided)
     return (action, maps) if return_maps else action

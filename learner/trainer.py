@@ -40,7 +40,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from romannet.common.action_mask import masked_max
 from romannet.common.config import ExplorationConfig, ModelConfig, RewardConfig, TaskConfig
 from romannet.common.config_learner import LearnerConfig
 from romannet.common.errors import ConfigError
@@ -228,11 +227,7 @@ class Trainer:
                 x = self._inputs([transitions[i].color_after for i in idx], [transitions[i].depth_after for i in idx])
                 with self._autocast():
                     q, _ = net_model.nets[p](x)
-                if self.exploration_cfg.action_mask:  # V over the pixels the actors may choose
-                    best = masked_max(q.float(), np.stack([transitions[i].depth_after for i in idx]), p,
-                                      self.exploration_cfg)
-                else:
-                    best = q.float().amax(dim=(1, 2)).tolist()
+                best = q.float().amax(dim=(1, 2)).tolist()
                 for i, m in zip(idx, best, strict=True):
                     maxima[i][p] = m
             for i in need:

@@ -9,7 +9,7 @@ from _learner_helpers import SMALL_MODEL
 from romannet.common.action import Action
 from romannet.common.config import ExplorationConfig
 from romannet.common.configbase import ConfigError
-from romannet.common.failure_memory import FailureMemory, failure_masks, join_masks
+from romannet.common.failure_memory import FailureMemory, failure_masks, masked_q
 from romannet.common.model import RoManNet
 from romannet.common.policy import decide
 
@@ -38,18 +38,16 @@ def test_nothing_to_avoid_gives_none_and_a_map_never_loses_every_pixel() -> None
     assert everything is None  # the disc covers the map: the policy must still act, so nothing is avoided
 
 
-def test_join_masks_keeps_the_intersection_or_the_first_when_it_would_be_empty() -> None:
-    a = {"pick": np.zeros(SHAPE, bool), "push": np.ones(SHAPE, bool)}
-    a["pick"][:, :16] = True
-    b = {"pick": np.zeros(SHAPE, bool), "push": np.ones(SHAPE, bool)}
-    b["pick"][:, 8:] = True
-    joined = join_masks(a, b)
-    assert joined is not None and joined["pick"].sum() == 32 * 8 and joined["push"].all()
-    disjoint = {"pick": ~a["pick"], "push": b["push"]}
-    assert np.array_equal(join_masks(a, disjoint)["pick"], a["pick"])  # avoiding never leaves nothing
-    assert join_masks(None, None) is None
-    assert np.array_equal(join_masks(None, b)["pick"], b["pick"])
-    assert np.array_equal(join_masks(a, None)["pick"], a["pick"])
+def test_masked_q_sinks_the_masked_pixels_below_every_other_and_stays_finite() -> None:
+    q = np.random.default_rng(0).random(SHAPE).astype(np.float32)
+    q[0, 0] = 5.0  # the raw argmax lies in the masked region
+    mask = np.ones(SHAPE, bool)
+    mask[:4, :4] = False
+    mq = masked_q(q, mask)
+    assert mq.dtype == q.dtype and np.isfinite(mq).all()
+    assert mq.max() == q[mask].max() and (mq[~mask] < q[mask].min()).all()
+    assert np.array_equal(mq[mask], q[mask])
+    assert masked_q(q, np.ones(SHAPE, bool)) is q  # nothing masked: the map itself
 
 
 def test_the_memory_holds_the_failures_since_the_last_success_of_an_episode() -> None:
