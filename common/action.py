@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import PRIMITIVES, WorkspaceConfig
+from .stack import top_face_centre
 
 
 @dataclass(frozen=True)
@@ -66,3 +67,17 @@ def patch_max(depth_hm: np.ndarray, row: int, col: int, radius_m: float, resolut
     above, or a held object is lowered onto."""
     r = max(1, round(radius_m / resolution_m))
     return float(depth_hm[max(0, row - r):row + r + 1, max(0, col - r):col + r + 1].max())
+
+
+def place_position(depth_hm: np.ndarray, row: int, col: int, ws: WorkspaceConfig, cube_size_m: float,
+                   on_top_centre: bool) -> tuple[float, float]:
+    """Robot-frame (x, y) in metres a held object is placed at for a place at pixel (row, col): the pixel's, or
+    with `on_top_centre` the centre of the top face under it (common.stack.top_face_centre) where there is one."""
+    x, y, _ = pixel_to_position(row, col, depth_hm, ws)
+    if not on_top_centre:
+        return x, y
+    centre = top_face_centre(depth_hm, row, col, ws.resolution_m, cube_size_m, PLACE_PATCH_RADIUS_M)
+    if centre is None:
+        return x, y
+    # A face's pixels cover [x_min + col * res, x_min + (col + 1) * res): their centres lie half a pixel in.
+    return (centre[1] + 0.5) * ws.resolution_m + ws.x_min_m, (centre[0] + 0.5) * ws.resolution_m + ws.y_min_m

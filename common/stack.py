@@ -38,3 +38,38 @@ def filtered_heightmap(depth_hm: np.ndarray, median_ksize: int = 5) -> np.ndarra
     if median_ksize not in _FLOAT_MEDIAN_KSIZES:
         raise ValueError(f"median_ksize must be one of {_FLOAT_MEDIAN_KSIZES} (cv2 on float32); got {median_ksize}")
     return cv2.medianBlur(_as_heightmap(depth_hm), median_ksize)
+
+
+def top_face_centre(depth_hm: np.ndarray, row: int, col: int, resolution_m: float, cube_size_m: float,
+                    patch_radius_m: float) -> tuple[float, float] | None:
+    """(row, col), in fractional pixels, of the centre of the top face a held cube lowered at pixel (row, col)
+    comes to rest on; None when there is no single cube-sized face there (the floor, or tops that touch).
+
+    The hand is lowered onto the highest point within `patch_radius_m` of the pixel (common.action.patch_max);
+    the top face is the 8-connected region within 0.4 cube sizes of that height around it (above or below), in a window of
+    two cube sizes. Its centroid is the face's centre when the face is one cube's top: a region larger than
+    1.6 cube faces (neighbouring tops at the same height) or under half of one (an edge seen at a slant) is no
+    face to centre on.
+    """
+    if not (resolution_m > 0 and cube_size_m > 0 and patch_radius_m >= 0):
+        raise ValueError(f"resolution_m, cube_size_m must be > 0 and patch_radius_m >= 0; got {resolution_m}, "
+                         f"{cube_size_m}, {patch_radius_m}")
+    hm = filtered_heightmap(depth_hm)
+    h, w = hm.shape
+    if not (0 <= row < h and 0 <= col < w):
+        raise ValueError(f"pixel ({row}, {col}) is outside the {h} x {w} heightmap")
+    win = max(1, int(np.ceil(2 * cube_size_m / resolution_m)))
+    r0, r1, c0, c1 = max(0, row - win), min(h, row + win + 1), max(0, col - win), min(w, col + win + 1)
+    window = hm[r0:r1, c0:c1]
+    rows, cols = np.mgrid[r0:r1, c0:c1]
+    patch = (rows - row) ** 2 + (cols - col) ** 2 <= max(1.0, patch_radius_m / resolution_m) ** 2
+    top = float(window[patch].max())
+    if top < cube_size_m / 2:
+        return None
+    _, labels = cv2.connectedComponents((np.abs(window - top) <= 0.4 * cube_size_m).astype(np.uint8), connectivity=8)
+    peak = np.flatnonzero(patch.ravel() & (window.ravel() == top))[0]
+    face = labels == labels.ravel()[peak]
+    area_faces = float(face.sum()) * resolution_m ** 2 / cube_size_m ** 2
+    if not 0.5 <= area_faces <= 1.6:
+        return None
+    return float(rows[face].mean()), float(cols[face].mean())

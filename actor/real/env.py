@@ -32,6 +32,7 @@ from romannet.common.action import (
     Action,
     patch_max,
     pixel_to_position,
+    place_position,
 )
 from romannet.common.config import Config, WorkspaceConfig
 from romannet.common.episode_rules import (
@@ -181,6 +182,8 @@ class RealEnv:
                     return dropped
             return result
         top = patch_max(hm, action.row, action.col, PLACE_PATCH_RADIUS_M, ws.resolution_m)
+        x, y = place_position(hm, action.row, action.col, ws, self.cfg.task.cube_size_m,
+                              self.cfg.task.place_on_top_centre)
         return self.robot.place(x, y, ws.z_min_m + top, action.angle_rad)
 
     def _drop_xy(self) -> tuple[float, float]:

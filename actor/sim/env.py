@@ -26,6 +26,7 @@ from romannet.common.action import (
     Action,
     patch_max,
     pixel_to_position,
+    place_position,
 )
 from romannet.common.config import CameraConfig, Config, RewardConfig, TaskConfig, WorkspaceConfig
 from romannet.common.config_sim import SimConfig
@@ -177,6 +178,8 @@ class SimEnv:
             return PrimitiveResult(False, "dropped", 0)
         z_place = patch_max(self.obs.depth_hm, action.row, action.col, PLACE_PATCH_RADIUS_M,
                             self.ws.resolution_m) + self.ws.z_min_m
+        x, y = place_position(self.obs.depth_hm, action.row, action.col, self.ws, self.task.cube_size_m,
+                              self.task.place_on_top_centre)
         return self.prims.place(x, y, z_place, action.angle_rad, self.hang_m)
 
     def step(self, action: Action) -> StepResult:
