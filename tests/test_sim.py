@@ -134,6 +134,28 @@ def test_place_on_a_cube_raises_the_stack_to_two(env):
     assert result.progress_after == pytest.approx(2 / 5) and result.reward == pytest.approx(2 / 5)
 
 
+@pytest.mark.parametrize("on_top_centre", [False, True])
+def test_a_place_2_cm_off_a_cube_top_goes_to_its_centre_with_place_on_top_centre(env, on_top_centre):
+    _scene_with_cubes(env, [(0.45, -0.1, 0.025, 0.0), (0.6, 0.1, 0.025, 0.0)])
+    result = env.step(oracle_action(env))
+    assert result.success and env.holding, result.detail
+    held = env.held_body
+    below = next(b for b in env.scene.objects if b != held)
+    below_xy = env.scene.pose(below)[0][:2]
+    row, col = position_to_pixel(below_xy[0] + 0.02, below_xy[1], WS)  # 2 cm off the centre, 5 mm in
+    task = env.task
+    env.task = dataclasses.replace(task, place_on_top_centre=on_top_centre)
+    try:
+        env.step(Action("place", row, col, 0.0, 1.0))
+    finally:
+        env.task = task
+    offset = float(np.linalg.norm(env.scene.pose(held)[0][:2] - env.scene.pose(below)[0][:2]))
+    if on_top_centre:
+        assert env.stack_height_gt() == 2 and offset < 0.005
+    else:  # placed where asked: it holds 2 cm off the centre or falls off
+        assert offset > 0.015
+
+
 def test_push_moves_the_object_it_touches(env):
     x, y = 0.5, 0.0
     _scene_with_cubes(env, [(x, y, 0.025, 0.0)])
