@@ -2,7 +2,7 @@
 
     memory = FailureMemory(radius_px=10)       # one per episode; exploration.failure_memory_px
     action = decide(..., avoid=memory)         # decide takes memory.masks(its nets, the heightmap shape)
-    memory.record(action, success)             # a success clears it; memory.reset() at a new episode
+    memory.record(action, success, p_before, p_after)  # a success clears it; memory.reset() at a new episode
 
 A greedy policy that is not learning sees nearly the same heightmap after a pick that moved nothing, so it
 chooses the same pixel again and again until the episode ends on consecutive failures. The paper's test
@@ -54,16 +54,36 @@ class FailureMemory:
     """The failed actions of the current episode since its last success (module docstring)."""
 
     radius_px: int
+    # Stacking: P counts cubes on the stack, which a pick can take off again (the rule in record). Clutter's P
+    # is an occupied share that a push can lower and a pick win back; kept there it lowered pick success at 30
+    # blocks from 66.5 % to 62.2 % (models/clutter, 10 runs), so there a success clears the memory as before.
+    track_progress: bool = False
     failed: list[tuple[str, int, int]] = field(default_factory=list)
+    best_progress: float | None = None  # the highest task progress P seen in the episode
 
     def reset(self) -> None:
         """A new episode: nothing failed yet."""
         self.failed.clear()
+        self.best_progress = None
 
-    def record(self, action: Action, success: bool) -> None:
-        """Remember a failed action; a success changed the scene, so it clears what was remembered."""
-        if success:
-            self.failed.clear()
+    def record(self, action: Action, success: bool, progress_before: float | None = None,
+               progress_after: float | None = None, tolerance: float = 0.0) -> None:
+        """Remember a failed action; a success changed the scene, so it clears what was remembered.
+
+        With track_progress and the task progress P before and after the action (StepResult): an action that
+        lowered P (a cube taken off the stack) is remembered as a failure, and a success that only won back P
+        lost since (putting that cube back) clears nothing, so the greedy policy does not take the same cube
+        off again and again. `tolerance`: a change of P within it is none (reward.progress_tolerance: depth
+        noise), as the reward's reversal rule has it."""
+        moved = self.track_progress and progress_before is not None and progress_after is not None
+        reversed_ = moved and progress_after < progress_before - tolerance
+        restored = (moved and self.best_progress is not None and progress_before + tolerance < progress_after
+                    <= self.best_progress + tolerance)
+        if moved:
+            self.best_progress = max(progress_after, progress_before, self.best_progress or 0.0)
+        if success and not reversed_:
+            if not restored:
+                self.failed.clear()
         elif self.radius_px > 0:
             self.failed.append((action.primitive, action.row, action.col))
 

@@ -66,6 +66,38 @@ def test_the_memory_holds_the_failures_since_the_last_success_of_an_episode() ->
     assert off.failed == [] and off.masks(("pick",), SHAPE) is None
 
 
+def _place(row: int, col: int) -> Action:
+    return Action("place", row, col, 0.0, 1.0)
+
+
+def test_taking_a_cube_off_the_stack_is_remembered_and_putting_it_back_clears_nothing() -> None:
+    memory = FailureMemory(radius_px=2, track_progress=True)
+    memory.record(_pick(30, 30), True, 0.25, 0.25)  # a cube off the table: P unchanged, a plain success
+    memory.record(_place(10, 10), True, 0.25, 0.5)  # the stack grows: a new best
+    memory.record(_pick(10, 10), True, 0.5, 0.25)  # the stack's top cube off again: P falls
+    masks = memory.masks(("pick",), SHAPE)
+    assert masks is not None and not masks["pick"][10, 10]
+    memory.record(_place(10, 10), True, 0.25, 0.5)  # back on: only what was lost, so the pick stays avoided
+    assert memory.masks(("pick",), SHAPE) is not None
+    memory.record(_pick(30, 30), True, 0.5, 0.5)  # another cube off the table clears it, as any success
+    assert memory.masks(("pick",), SHAPE) is None
+    memory.record(_place(10, 10), True, 0.5, 0.75)  # past the best: a new stack height
+    assert memory.best_progress == 0.75 and memory.failed == []
+
+
+def test_progress_changes_within_the_tolerance_are_none_and_untracked_progress_is_ignored() -> None:
+    untracked = FailureMemory(radius_px=2)  # clutter: any success clears, whatever P did
+    untracked.record(_pick(5, 5), True, 0.50, 0.10)
+    assert untracked.masks(("pick",), SHAPE) is None and untracked.best_progress is None
+    memory = FailureMemory(radius_px=2, track_progress=True)
+    memory.record(_pick(5, 5), True, 0.50, 0.49, tolerance=0.02)  # depth noise, not a reversal
+    assert memory.masks(("pick",), SHAPE) is None
+    memory.record(_pick(5, 5), True, 0.50, 0.40, tolerance=0.02)
+    assert memory.masks(("pick",), SHAPE) is not None
+    memory.reset()
+    assert memory.best_progress is None and memory.masks(("pick",), SHAPE) is None
+
+
 def test_decide_does_not_choose_a_failed_pixel_again_and_its_maps_are_the_states() -> None:
     model = RoManNet(SMALL_MODEL, seed=0)
     depth = np.zeros(SHAPE, np.float32)

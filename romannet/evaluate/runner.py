@@ -180,12 +180,13 @@ class Worker:
         rng = np.random.default_rng(spec.seed)  # greedy: only ties would draw from it; random: every action
         steps: list[StepLog] = []
         end_reason = "step_limit"
-        memory = FailureMemory(cfg.exploration.failure_memory_px)
+        memory = FailureMemory(cfg.exploration.failure_memory_px, track_progress=cfg.task.kind == "stacking")
         for step in range(spec.max_steps):
             action = self.act(env, obs, cfg, rng, memory)
             t0 = time.time_ns()
             result = env.step(action)
-            memory.record(action, bool(result.success))
+            memory.record(action, bool(result.success), result.progress_before, result.progress_after,
+                          cfg.reward.progress_tolerance)
             steps.append(StepLog(action.primitive, bool(result.success)))
             if trainer is not None and self.engine is not None:
                 msg = TransitionMsg.from_step(obs, action, result, actor_id="eval",
