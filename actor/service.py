@@ -121,8 +121,8 @@ class ActorLoop:
                              acfg.resend_backoff_max_s)
         self.engine = engine or InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
         self.stats = ActorStats(acfg.actor_id, cfg.run_id, explore_rate=cfg.exploration.initial_rate)
-        # of the episode under way
-        self.failures = FailureMemory(cfg.exploration.failure_memory_px, track_progress=cfg.task.kind == "stacking")
+        self.failures = FailureMemory(cfg.exploration.failure_memory_px,  # of the episode under way
+                                      track_progress=cfg.task.kind == "stacking")
         # The last weights that produced finite Q maps (None = the initial ones): what a diverged learner's
         # weights are replaced by.
         self.good_weights: tuple[int, dict[str, torch.Tensor]] | None = None
@@ -358,9 +358,8 @@ class ActorLoop:
         q_ranges = recorder.write_q_maps(maps.q, start_ns) if recorder is not None else {}
         result = self.env.step(action)
         end_ns = max(time.time_ns(), start_ns)
-        # before the next decision, which avoids a failure
         self.failures.record(action, result.success, result.progress_before, result.progress_after,
-                             self.cfg.reward.progress_tolerance)
+                             self.cfg.reward.progress_tolerance)  # before the next decision, which avoids it
         following = None
         if not result.done and not self.stop.is_set() and not self._last_action():
             self.swap_policy()

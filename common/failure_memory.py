@@ -9,7 +9,8 @@ chooses the same pixel again and again until the episode ends on consecutive fai
 protocol escapes by training within the run (VPG's test-time learning); a robot running frozen weights
 needs the rule at decision time: pixels within radius_px of an action of the same primitive that failed
 since the last success are not chosen (masked_q sinks them below every other pixel, and exploration
-draws among the rest). Any success changed the scene, so it clears the memory.
+draws among the rest). Any success changed the scene, so it clears the memory; on stacking, a pick that
+took a cube off the stack counts as a failure, and putting it back clears nothing (FailureMemory.record).
 """
 
 from __future__ import annotations

@@ -46,8 +46,8 @@ def top_face_centre(depth_hm: np.ndarray, row: int, col: int, resolution_m: floa
     comes to rest on; None when there is no single cube-sized face there (the floor, or tops that touch).
 
     The hand is lowered onto the highest point within `patch_radius_m` of the pixel (common.action.patch_max);
-    the top face is the 8-connected region within 0.4 cube sizes of that height around it (above or below), in a window of
-    two cube sizes. Its centroid is the face's centre when the face is one cube's top: a region larger than
+    the top face is the 8-connected region within 0.4 cube sizes of that height (above or below) around it, in a
+    window of two cube sizes. Its centroid is the face's centre when the face is one cube's top: a region larger than
     1.6 cube faces (neighbouring tops at the same height) or under half of one (an edge seen at a slant) is no
     face to centre on.
     """
@@ -66,7 +66,8 @@ def top_face_centre(depth_hm: np.ndarray, row: int, col: int, resolution_m: floa
     top = float(window[patch].max())
     if top < cube_size_m / 2:
         return None
-    _, labels = cv2.connectedComponents((np.abs(window - top) <= 0.4 * cube_size_m).astype(np.uint8), connectivity=8)
+    near_top = (np.abs(window - top) <= 0.4 * cube_size_m).astype(np.uint8)
+    _, labels = cv2.connectedComponents(near_top, connectivity=8)
     peak = np.flatnonzero(patch.ravel() & (window.ravel() == top))[0]
     face = labels == labels.ravel()[peak]
     area_faces = float(face.sum()) * resolution_m ** 2 / cube_size_m ** 2

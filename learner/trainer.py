@@ -12,8 +12,9 @@ One `train_step(batch)`:
    times the item's importance-sampling weight, averaged over the batch. Only the executed
    primitives' nets get gradients; the others keep `.grad is None`, so SGD skips them entirely (no weight
    decay, no momentum).
-4. One SGD step at learner.lr, halved every learner.lr_halve_every_updates (learner/schedule.py); the exploration rate is updated with the paper's L_t (the Huber of the executed pixel's
-   TD error, averaged over the batch).
+4. One SGD step at learner.lr, halved every learner.lr_halve_every_updates (learner/schedule.py); the
+   exploration rate is updated with the paper's L_t (the Huber of the executed pixel's TD error, averaged
+   over the batch).
 
 BatchNorm: the nets train in train mode (batch statistics). Even at batch 1 a conv BN layer normalises
 over h*w >= 16*16 positions per channel, so per-image statistics are well defined; VPG trains the same way.
