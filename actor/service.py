@@ -121,8 +121,8 @@ class ActorLoop:
                              acfg.resend_backoff_max_s)
         self.engine = engine or InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
         self.stats = ActorStats(acfg.actor_id, cfg.run_id, explore_rate=cfg.exploration.initial_rate)
-        self.failures = FailureMemory(cfg.exploration.failure_memory_px,  # of the episode under way
-                                      track_progress=cfg.task.kind == "stacking")
+        # of the episode under way
+        self.failures = FailureMemory.for_task(cfg.exploration.failure_memory_px, cfg.task.kind)
         # The last weights that produced finite Q maps (None = the initial ones): what a diverged learner's
         # weights are replaced by.
         self.good_weights: tuple[int, dict[str, torch.Tensor]] | None = None

@@ -62,6 +62,11 @@ class FailureMemory:
     failed: list[tuple[str, int, int]] = field(default_factory=list)
     best_progress: float | None = None  # the highest task progress P seen in the episode
 
+    @classmethod
+    def for_task(cls, radius_px: int, task_kind: str) -> FailureMemory:
+        """The memory an episode of `task_kind` uses: progress tracked on stacking alone (the field's comment)."""
+        return cls(radius_px, track_progress=task_kind == "stacking")
+
     def reset(self) -> None:
         """A new episode: nothing failed yet."""
         self.failed.clear()

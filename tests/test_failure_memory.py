@@ -86,7 +86,8 @@ def test_taking_a_cube_off_the_stack_is_remembered_and_putting_it_back_clears_no
 
 
 def test_progress_changes_within_the_tolerance_are_none_and_untracked_progress_is_ignored() -> None:
-    untracked = FailureMemory(radius_px=2)  # clutter: any success clears, whatever P did
+    assert FailureMemory.for_task(2, "stacking").track_progress
+    untracked = FailureMemory.for_task(2, "clutter")  # any success clears, whatever P did
     untracked.record(_pick(5, 5), True, 0.50, 0.10)
     assert untracked.masks(("pick",), SHAPE) is None and untracked.best_progress is None
     memory = FailureMemory(radius_px=2, track_progress=True)

@@ -180,7 +180,7 @@ class Worker:
         rng = np.random.default_rng(spec.seed)  # greedy: only ties would draw from it; random: every action
         steps: list[StepLog] = []
         end_reason = "step_limit"
-        memory = FailureMemory(cfg.exploration.failure_memory_px, track_progress=cfg.task.kind == "stacking")
+        memory = FailureMemory.for_task(cfg.exploration.failure_memory_px, cfg.task.kind)
         for step in range(spec.max_steps):
             action = self.act(env, obs, cfg, rng, memory)
             t0 = time.time_ns()
