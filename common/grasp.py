@@ -16,14 +16,16 @@ OBJECT_MIN_HEIGHT_M = 0.01
 PICK_CENTRE_MAX_SPAN_M = 0.08
 
 
-def closing_axis_offset(depth_hm: np.ndarray, row: int, col: int, angle_rad: float, resolution_m: float,
-                        max_span_m: float = PICK_CENTRE_MAX_SPAN_M) -> float | None:
-    """Signed distance in metres along the closing axis (angle_rad from the column axis toward the row axis)
-    from pixel (row, col) to the middle of the object run under it; None where there is nothing to centre on.
+def closing_axis_run(depth_hm: np.ndarray, row: int, col: int, angle_rad: float, resolution_m: float,
+                     max_span_m: float = PICK_CENTRE_MAX_SPAN_M) -> tuple[float, float] | None:
+    """(near, far): signed distances in metres along the closing axis (angle_rad from the column axis toward
+    the row axis) from pixel (row, col) to the outer edges of the object run under it, near <= 0 <= far;
+    None where there is nothing to grasp across.
 
     The run is the contiguous line of pixels through (row, col), along the closing axis, at least half as high
-    as the pixel itself (and above OBJECT_MIN_HEIGHT_M). None when the pixel is floor, or the run is longer
-    than max_span_m or reaches the heightmap's edge (objects that touch, or one too long to grasp across).
+    as the pixel itself (and above OBJECT_MIN_HEIGHT_M); each pixel covers resolution_m. None when the pixel is
+    floor, or the run is longer than max_span_m or reaches the heightmap's edge (objects that touch, or one too
+    long to grasp across).
     """
     if not (resolution_m > 0 and max_span_m > 0 and math.isfinite(angle_rad)):
         raise ValueError(f"resolution_m and max_span_m must be > 0 and angle_rad finite; got {resolution_m}, "
@@ -52,4 +54,12 @@ def closing_axis_offset(depth_hm: np.ndarray, row: int, col: int, angle_rad: flo
     ahead, behind = run_end(1), run_end(-1)
     if ahead is None or behind is None or (ahead + behind + 1) * resolution_m > max_span_m:
         return None
-    return (ahead - behind) / 2 * resolution_m
+    return -(behind + 0.5) * resolution_m, (ahead + 0.5) * resolution_m
+
+
+def closing_axis_offset(depth_hm: np.ndarray, row: int, col: int, angle_rad: float, resolution_m: float,
+                        max_span_m: float = PICK_CENTRE_MAX_SPAN_M) -> float | None:
+    """Signed distance in metres along the closing axis from pixel (row, col) to the middle of the object run
+    under it (closing_axis_run); None where there is nothing to centre on."""
+    run = closing_axis_run(depth_hm, row, col, angle_rad, resolution_m, max_span_m)
+    return None if run is None else (run[0] + run[1]) / 2

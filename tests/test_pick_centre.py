@@ -10,7 +10,7 @@ import pytest
 
 from romannet.common.action import pick_position, pixel_to_position
 from romannet.common.config import WorkspaceConfig
-from romannet.common.grasp import closing_axis_offset
+from romannet.common.grasp import closing_axis_offset, closing_axis_run
 
 WS = WorkspaceConfig()  # 224 x 224 px at 2 mm
 RES = WS.resolution_m
@@ -34,6 +34,11 @@ def test_the_offset_to_the_middle_of_a_block_along_either_axis():
     assert closing_axis_offset(hm, 124, 70, math.pi / 2, RES) == pytest.approx(-12 * RES)
     # already in the middle: no move
     assert closing_axis_offset(hm, 112, 72, 0.0, RES) == pytest.approx(0.0)
+
+
+def test_the_run_reaches_the_block_s_outer_edges():
+    hm = _blocks((100, 60, 25, 25, 0.05))  # columns 60..84: from column 62, 2 px behind and 22 ahead
+    assert closing_axis_run(hm, 110, 62, 0.0, RES) == pytest.approx((-2.5 * RES, 22.5 * RES))
 
 
 def test_the_run_is_the_pixel_s_own_object_not_a_lower_one_beside_it():
