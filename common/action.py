@@ -13,7 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import PRIMITIVES, WorkspaceConfig
-from .grasp import closing_axis_offset
 from .stack import top_face_centre
 
 
@@ -82,17 +81,3 @@ def place_position(depth_hm: np.ndarray, row: int, col: int, ws: WorkspaceConfig
         return x, y
     # A face's pixels cover [x_min + col * res, x_min + (col + 1) * res): their centres lie half a pixel in.
     return (centre[1] + 0.5) * ws.resolution_m + ws.x_min_m, (centre[0] + 0.5) * ws.resolution_m + ws.y_min_m
-
-
-def pick_position(depth_hm: np.ndarray, row: int, col: int, angle_rad: float, ws: WorkspaceConfig,
-                  on_object_centre: bool) -> tuple[float, float]:
-    """Robot-frame (x, y) in metres the fingers close at for a pick at pixel (row, col): the pixel's, or with
-    `on_object_centre` moved along the closing axis to the middle of the object under it
-    (common.grasp.closing_axis_offset) where there is one."""
-    x, y, _ = pixel_to_position(row, col, depth_hm, ws)
-    if not on_object_centre:
-        return x, y
-    offset = closing_axis_offset(depth_hm, row, col, angle_rad, ws.resolution_m)
-    if offset is None:
-        return x, y
-    return x + offset * math.cos(angle_rad), y + offset * math.sin(angle_rad)

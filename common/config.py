@@ -128,10 +128,6 @@ class TaskConfig:
     # off aimed a median 1.9 cm from the centre of the cube under them, where the heightmap puts every cube
     # top's centre within 0.3 cm (docs/journal.md). The policy still chooses where to place.
     place_on_top_centre: bool = False
-    # A pick closes on the middle of the object under the chosen pixel along the closing axis
-    # (common.grasp.closing_axis_offset, read off the heightmap) instead of on the pixel: frozen clutter picks
-    # that failed closed a median 1.6 cm off their object's centre, those that held 0.66 cm.
-    pick_on_object_centre: bool = False
 
     def __post_init__(self) -> None:
         require(2 <= self.goal_stack_height <= 5, "task.goal_stack_height", self.goal_stack_height,

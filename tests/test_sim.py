@@ -156,33 +156,6 @@ def test_a_place_2_cm_off_a_cube_top_goes_to_its_centre_with_place_on_top_centre
         assert offset > 0.015
 
 
-@pytest.mark.parametrize("on_object_centre", [False, True])
-def test_a_pick_2_cm_off_a_cube_closes_on_its_middle_with_pick_on_object_centre(env, on_object_centre):
-    _scene_with_cubes(env, [(0.5, 0.0, 0.025, 0.0)])
-    cube_xy = env.scene.pose(env.scene.objects[0])[0][:2]
-    row, col = position_to_pixel(cube_xy[0] - 0.02, cube_xy[1], WS)  # 2 cm off the middle along x, 5 mm in
-    closed_at = []
-    pick = env.prims.pick
-
-    def recording_pick(x_m, y_m, *args, **kwargs):
-        closed_at.append((x_m, y_m))
-        return pick(x_m, y_m, *args, **kwargs)
-
-    task = env.task
-    env.task = dataclasses.replace(task, pick_on_object_centre=on_object_centre)
-    env.prims.pick = recording_pick
-    try:
-        result = env.step(Action("pick", row, col, 0.0, 1.0))  # closing along x
-    finally:
-        env.task, env.prims.pick = task, pick
-    off = np.subtract(closed_at[0], cube_xy)
-    assert result.success, result.detail
-    if on_object_centre:  # within a pixel and a half of the middle (the heightmap's binning)
-        assert np.abs(off).max() < 0.003
-    else:
-        assert off[0] == pytest.approx(-0.02, abs=0.002)
-
-
 @pytest.mark.parametrize("x_m", [0.30, 0.32])
 def test_a_cube_at_the_workspace_s_near_edge_is_picked_closing_toward_the_base(env, x_m):
     # The descent there needs the arm folded close to its base: with too few IK solves per waypoint it

@@ -31,7 +31,6 @@ from romannet.common.action import (
     PUSH_PATCH_RADIUS_M,
     Action,
     patch_max,
-    pick_position,
     pixel_to_position,
     place_position,
 )
@@ -175,7 +174,6 @@ class RealEnv:
             top = patch_max(hm, action.row, action.col, PUSH_PATCH_RADIUS_M, ws.resolution_m)
             return self.robot.push(x, y, ws.z_min_m + top + rc.push_clearance_m, action.angle_rad)
         if action.primitive == "pick":
-            x, y = pick_position(hm, action.row, action.col, action.angle_rad, ws, self.cfg.task.pick_on_object_centre)
             result = self.robot.pick(x, y, z, action.angle_rad)
             if result.success and not self.stacking:  # bin picking: into the destination bin
                 dx, dy = self._drop_xy()

@@ -25,7 +25,6 @@ from romannet.common.action import (
     PUSH_PATCH_RADIUS_M,
     Action,
     patch_max,
-    pick_position,
     pixel_to_position,
     place_position,
 )
@@ -173,8 +172,6 @@ class SimEnv:
             z_reach = max(patch_max(hm, action.row, action.col, PICK_REACH_RADIUS_M, res),
                           patch_max(hm, action.row, action.col, HAND_REACH_RADIUS_M, res) - HAND_ABOVE_TIPS_M
                           ) + self.ws.z_min_m
-            x, y = pick_position(hm, action.row, action.col, action.angle_rad, self.ws,
-                                 self.task.pick_on_object_centre)
             return self.prims.pick(x, y, z, action.angle_rad, remove_held=self.task_def.remove_picked,
                                    z_contact_m=z_reach)
         if self.prims.held_body() != self.held_body:  # the object slipped out on the way
