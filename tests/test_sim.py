@@ -159,7 +159,7 @@ def test_a_place_2_cm_off_a_cube_top_goes_to_its_centre_with_place_on_top_centre
 @pytest.mark.parametrize("x_m", [0.30, 0.32])
 def test_a_cube_at_the_workspace_s_near_edge_is_picked_closing_toward_the_base(env, x_m):
     # The descent there needs the arm folded close to its base: with too few IK solves per waypoint it
-    # stopped 7 cm above the cube and closed on air, and the oracle failed 39 of 44 failed picks there.
+    # stopped 7 cm above the cube and closed on air: 39 of the clutter oracle's 44 failed picks were there.
     _scene_with_cubes(env, [(x_m, 0.0, 0.025, 0.0)])
     cube_xy = env.scene.pose(env.scene.objects[0])[0][:2]
     row, col = position_to_pixel(cube_xy[0], cube_xy[1], WS)
