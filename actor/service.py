@@ -121,8 +121,7 @@ class ActorLoop:
                              acfg.resend_backoff_max_s)
         self.engine = engine or InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
         self.stats = ActorStats(acfg.actor_id, cfg.run_id, explore_rate=cfg.exploration.initial_rate)
-        # of the episode under way
-        self.failures = FailureMemory.for_task(cfg.exploration.failure_memory_px, cfg.task.kind)
+        self.failures = FailureMemory.for_task(cfg)  # of the episode under way
         # The last weights that produced finite Q maps (None = the initial ones): what a diverged learner's
         # weights are replaced by.
         self.good_weights: tuple[int, dict[str, torch.Tensor]] | None = None
@@ -358,8 +357,8 @@ class ActorLoop:
         q_ranges = recorder.write_q_maps(maps.q, start_ns) if recorder is not None else {}
         result = self.env.step(action)
         end_ns = max(time.time_ns(), start_ns)
-        self.failures.record(action, result.success, result.progress_before, result.progress_after,
-                             self.cfg.reward.progress_tolerance)  # before the next decision, which avoids it
+        # before the next decision, which avoids it
+        self.failures.record(action, result.success, result.progress_before, result.progress_after)
         following = None
         if not result.done and not self.stop.is_set() and not self._last_action():
             self.swap_policy()

@@ -1,6 +1,6 @@
 """Not repeating a failed action on a scene it did not change: the greedy policy's loop breaker.
 
-    memory = FailureMemory(radius_px=10)       # one per episode; exploration.failure_memory_px
+    memory = FailureMemory.for_task(cfg)      # one per episode: exploration.failure_memory_px, the task
     action = decide(..., avoid=memory)         # decide takes memory.masks(its nets, the heightmap shape)
     memory.record(action, success, p_before, p_after)  # a success clears it; memory.reset() at a new episode
 
@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .action import Action
+from .config import Config
+from .reward import progress_reversed
 
 
 def failure_masks(failed: Iterable[tuple[str, int, int]], primitives: Iterable[str], shape: tuple[int, int],
@@ -59,13 +61,16 @@ class FailureMemory:
     # is an occupied share that a push can lower and a pick win back; kept there it lowered pick success at 30
     # blocks from 66.5 % to 62.2 % (models/clutter, 10 runs), so there a success clears the memory as before.
     track_progress: bool = False
+    tolerance: float = 0.0  # a change of P within it is none (reward.progress_tolerance: depth noise)
     failed: list[tuple[str, int, int]] = field(default_factory=list)
     best_progress: float | None = None  # the highest task progress P seen in the episode
 
     @classmethod
-    def for_task(cls, radius_px: int, task_kind: str) -> FailureMemory:
-        """The memory an episode of `task_kind` uses: progress tracked on stacking alone (the field's comment)."""
-        return cls(radius_px, track_progress=task_kind == "stacking")
+    def for_task(cls, cfg: Config) -> FailureMemory:
+        """The memory an episode under `cfg` uses: exploration.failure_memory_px, progress tracked on stacking
+        alone (the field's comment), with the reward's reversal tolerance."""
+        return cls(cfg.exploration.failure_memory_px, track_progress=cfg.task.kind == "stacking",
+                   tolerance=cfg.reward.progress_tolerance)
 
     def reset(self) -> None:
         """A new episode: nothing failed yet."""
@@ -73,18 +78,17 @@ class FailureMemory:
         self.best_progress = None
 
     def record(self, action: Action, success: bool, progress_before: float | None = None,
-               progress_after: float | None = None, tolerance: float = 0.0) -> None:
+               progress_after: float | None = None) -> None:
         """Remember a failed action; a success changed the scene, so it clears what was remembered.
 
         With track_progress and the task progress P before and after the action (StepResult): an action that
         lowered P (a cube taken off the stack) is remembered as a failure, and a success that only won back P
         lost since (putting that cube back) clears nothing, so the greedy policy does not take the same cube
-        off again and again. `tolerance`: a change of P within it is none (reward.progress_tolerance: depth
-        noise), as the reward's reversal rule has it."""
+        off again and again. A reversal is the reward's (common.reward.progress_reversed, within `tolerance`)."""
         moved = self.track_progress and progress_before is not None and progress_after is not None
-        reversed_ = moved and progress_after < progress_before - tolerance
-        restored = (moved and self.best_progress is not None and progress_before + tolerance < progress_after
-                    <= self.best_progress + tolerance)
+        reversed_ = moved and progress_reversed(progress_before, progress_after, self.tolerance)
+        restored = (moved and self.best_progress is not None
+                    and progress_before + self.tolerance < progress_after <= self.best_progress + self.tolerance)
         if moved:
             self.best_progress = max(progress_after, progress_before, self.best_progress or 0.0)
         if success and not reversed_:

@@ -7,7 +7,7 @@ import pytest
 from _learner_helpers import SMALL_MODEL
 
 from romannet.common.action import Action
-from romannet.common.config import ExplorationConfig
+from romannet.common.config import Config, ExplorationConfig, RewardConfig, TaskConfig
 from romannet.common.configbase import ConfigError
 from romannet.common.failure_memory import FailureMemory, failure_masks, masked_q
 from romannet.common.model import RoManNet
@@ -86,14 +86,15 @@ def test_taking_a_cube_off_the_stack_is_remembered_and_putting_it_back_clears_no
 
 
 def test_progress_changes_within_the_tolerance_are_none_and_untracked_progress_is_ignored() -> None:
-    assert FailureMemory.for_task(2, "stacking").track_progress
-    untracked = FailureMemory.for_task(2, "clutter")  # any success clears, whatever P did
+    stacking = FailureMemory.for_task(Config(task=TaskConfig(kind="stacking")))
+    assert stacking.track_progress and stacking.tolerance == RewardConfig().progress_tolerance
+    untracked = FailureMemory.for_task(Config(task=TaskConfig(kind="clutter")))  # any success clears
     untracked.record(_pick(5, 5), True, 0.50, 0.10)
     assert untracked.masks(("pick",), SHAPE) is None and untracked.best_progress is None
-    memory = FailureMemory(radius_px=2, track_progress=True)
-    memory.record(_pick(5, 5), True, 0.50, 0.49, tolerance=0.02)  # depth noise, not a reversal
+    memory = FailureMemory(radius_px=2, track_progress=True, tolerance=0.02)
+    memory.record(_pick(5, 5), True, 0.50, 0.49)  # depth noise, not a reversal
     assert memory.masks(("pick",), SHAPE) is None
-    memory.record(_pick(5, 5), True, 0.50, 0.40, tolerance=0.02)
+    memory.record(_pick(5, 5), True, 0.50, 0.40)
     assert memory.masks(("pick",), SHAPE) is not None
     memory.reset()
     assert memory.best_progress is None and memory.masks(("pick",), SHAPE) is None

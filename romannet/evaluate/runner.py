@@ -180,13 +180,12 @@ class Worker:
         rng = np.random.default_rng(spec.seed)  # greedy: only ties would draw from it; random: every action
         steps: list[StepLog] = []
         end_reason = "step_limit"
-        memory = FailureMemory.for_task(cfg.exploration.failure_memory_px, cfg.task.kind)
+        memory = FailureMemory.for_task(cfg)
         for step in range(spec.max_steps):
             action = self.act(env, obs, cfg, rng, memory)
             t0 = time.time_ns()
             result = env.step(action)
-            memory.record(action, bool(result.success), result.progress_before, result.progress_after,
-                          cfg.reward.progress_tolerance)
+            memory.record(action, bool(result.success), result.progress_before, result.progress_after)
             steps.append(StepLog(action.primitive, bool(result.success)))
             if trainer is not None and self.engine is not None:
                 msg = TransitionMsg.from_step(obs, action, result, actor_id="eval",
