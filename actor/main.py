@@ -61,6 +61,9 @@ def build_env(cfg: Config, robot: str = "sim", camera: str | None = None) -> Env
         return SimEnv.from_config(cfg)
     if camera not in (None, "realsense"):
         raise ConfigError("--camera", camera, "a real robot needs a real camera: --camera realsense")
+    if cfg.exploration.pick_clearance:
+        raise ConfigError("exploration.pick_clearance", True, "the clearance rule models the simulated hand's "
+                          "fingers; a real robot's gripper has no footprint model yet: set it to false")
     if not cfg.robot.calibration_file:
         raise ConfigError("robot.calibration_file", "", "a real robot needs the camera-to-robot calibration: "
                           "run `romannet calibrate --config robot.toml --out calibration.json` and set "

@@ -40,6 +40,7 @@ from romannet.common.episode_rules import ideal_actions
 from romannet.common.errors import RobotError
 from romannet.common.exploration import NonFiniteQError
 from romannet.common.failure_memory import FailureMemory
+from romannet.common.grasp_clearance import PickClearance
 from romannet.common.interfaces import Env, Observation, ReplayClient, StepResult, WeightsSource
 from romannet.common.model import RoManNet, state_dict_to_tensors
 from romannet.common.policy import InferenceEngine, PolicyMaps, decide
@@ -122,6 +123,7 @@ class ActorLoop:
         self.engine = engine or InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
         self.stats = ActorStats(acfg.actor_id, cfg.run_id, explore_rate=cfg.exploration.initial_rate)
         self.failures = FailureMemory.for_task(cfg)  # of the episode under way
+        self.clearance = PickClearance.for_config(cfg)
         # The last weights that produced finite Q maps (None = the initial ones): what a diverged learner's
         # weights are replaced by.
         self.good_weights: tuple[int, dict[str, torch.Tensor]] | None = None
@@ -323,7 +325,8 @@ class ActorLoop:
         args = (obs.color_hm, obs.depth_hm, obs.holding, self.stats.explore_rate, rng, self.env.primitives,
                 self.cfg.exploration)
         try:
-            result = decide(self.engine, *args, return_maps=True, avoid=self.failures)
+            result = decide(self.engine, *args, return_maps=True, avoid=self.failures,
+                            clearance=self.clearance)
         except NonFiniteQError as err:
             if self.loaded_weights is None:  # the initial weights themselves: nothing to fall back to
                 raise
@@ -337,7 +340,8 @@ class ActorLoop:
             self.engine.load_state(tensors)
             self.loaded_weights, self.stats.weights_version = self.good_weights, good
             self.stats.initial_weights = self.good_weights is None
-            result = decide(self.engine, *args, return_maps=True, avoid=self.failures)
+            result = decide(self.engine, *args, return_maps=True, avoid=self.failures,
+                            clearance=self.clearance)
         self.good_weights = self.loaded_weights
         return result
 

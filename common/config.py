@@ -243,6 +243,9 @@ class ExplorationConfig:
     # not chosen again (common/failure_memory.py): a greedy policy otherwise repeats a failed pick on the scene
     # it did not change until the episode ends; 10 px beat 20 and 0 on 3 checkpoints (docs/results.md). 0: off.
     failure_memory_px: int = 10
+    # Pick only where the open fingers and the hand come down to the grasp height at the pick net's angle,
+    # judged on the depth heightmap by the simulated hand's footprint (common/grasp_clearance.py).
+    pick_clearance: bool = False
     epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
     epsilon_decay: float = 0.9998
     epsilon_min: float = 0.1

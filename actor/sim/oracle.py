@@ -20,25 +20,13 @@ import numpy as np
 import pybullet as p
 
 from romannet.common.action import Action, patch_max, position_to_pixel
+from romannet.common.grasp_clearance import CLEAR_M, PAD_HEIGHTS_M, GripperFootprint, footprint_height
 
 from .env import SimEnv
 from .scene import wrap_half_pi
 
 GRASP_WIDTH_MARGIN_M = 0.01  # an object this much narrower than the full opening still fits between the fingers
-# The Panda's fingers squeeze with their lowest centimetre: there must be material at these heights above
-# the fingertips (an arch grasped over its hole has material only higher up, and slips: measured).
-PAD_HEIGHTS_M = (0.003, 0.008)
 FREE_FLOOR_M = 0.01  # a push starts where the heightmap is below this (else it rides over an object)
-# Where an open finger comes down, from the pick's centre: from the inner face at the finger travel, this
-# far outward along the closing axis and this far either side across it (the Panda finger's lower part).
-FINGER_OUTWARD_M = 0.02
-FINGER_HALF_WIDTH_M = 0.012
-# The hand above the fingers: 21 cm along the closing axis, 7 cm across, its underside this far above the
-# fingertips (the env slows the descent over it; an object under it stops the hand).
-HAND_HALF_LENGTH_M = 0.105
-HAND_HALF_WIDTH_M = 0.035
-HAND_ABOVE_TIPS_M = 0.045
-CLEAR_M = 0.003  # the fingers reach their grasp height when nothing within their footprint is higher than this above it
 EXTRA_ANGLES_RAD = (math.pi / 4, -math.pi / 4)  # tried after the footprint's two axes (irregular or round objects)
 TOP_RAY_STEP_M = 0.004  # spacing of the rays that find an object's top from above
 POINT_MIN_DISTANCE_M = 0.005
@@ -112,20 +100,12 @@ def _across_body(env: SimEnv, body: int, xy: np.ndarray, angle_rad: float, z_tip
     return float(max(np.linalg.norm(points[0] - points[1]), np.linalg.norm(points[2] - points[3])))
 
 
-def _zone_max(env: SimEnv, xy: np.ndarray, angle_rad: float, along_m: tuple[float, float],
-              half_width_m: float) -> float:
-    """Highest point of the depth heightmap (m above the table) in a rectangle: from along_m[0] to along_m[1]
-    from xy along angle_rad, half_width_m either side of that line (the part inside the workspace)."""
-    ws, res = env.ws, env.ws.resolution_m
-    d, n = np.array([math.cos(angle_rad), math.sin(angle_rad)]), np.array([-math.sin(angle_rad), math.cos(angle_rad)])
-    s = np.arange(along_m[0], along_m[1] + 1e-9, res / 2)
-    t = np.arange(-half_width_m, half_width_m + 1e-9, res / 2)
-    pts = xy + s[:, None, None] * d + t[None, :, None] * n
-    cols = np.floor((pts[..., 0] - ws.x_min_m) / res).astype(int).ravel()
-    rows = np.floor((pts[..., 1] - ws.y_min_m) / res).astype(int).ravel()
-    hm = env.obs.depth_hm
-    inside = (rows >= 0) & (rows < hm.shape[0]) & (cols >= 0) & (cols < hm.shape[1])
-    return float(hm[rows[inside], cols[inside]].max()) if inside.any() else 0.0
+def _footprint_height(env: SimEnv, xy: np.ndarray, angle_rad: float) -> float:
+    """Where the open fingers or the hand of a pick over xy along angle_rad land first (m above the table)."""
+    ws, sim = env.ws, env.sim
+    g = GripperFootprint(sim.finger_travel_m, sim.pick_depth_m, sim.fingertip_clearance_m)
+    xy_px = ((xy[0] - ws.x_min_m) / ws.resolution_m, (xy[1] - ws.y_min_m) / ws.resolution_m)
+    return footprint_height(env.obs.depth_hm, ws.resolution_m, xy_px, angle_rad, g)
 
 
 @dataclass(frozen=True)
@@ -185,10 +165,7 @@ def _grasps(env: SimEnv, body: int) -> list[Grasp]:
         top = float(env.obs.depth_hm[px]) + ws.z_min_m  # the height the env reads at this pixel
         z_grasp = max(top - env.sim.pick_depth_m, env.sim.fingertip_clearance_m + ws.z_min_m)
         for a in _grasp_angles(env, body):
-            fingers = max(_zone_max(env, xy, a, (travel, travel + FINGER_OUTWARD_M), FINGER_HALF_WIDTH_M),
-                          _zone_max(env, xy, a + math.pi, (travel, travel + FINGER_OUTWARD_M), FINGER_HALF_WIDTH_M))
-            hand = _zone_max(env, xy, a, (-HAND_HALF_LENGTH_M, HAND_HALF_LENGTH_M), HAND_HALF_WIDTH_M)
-            z_tip = max(z_grasp, fingers + ws.z_min_m, hand + ws.z_min_m - HAND_ABOVE_TIPS_M)
+            z_tip = max(z_grasp, _footprint_height(env, xy, a) + ws.z_min_m)
             width = _across_body(env, body, xy, a, z_tip)
             if width is not None and width <= 2 * travel - GRASP_WIDTH_MARGIN_M:
                 grasps.append(Grasp(body, xy, a, clear=z_tip <= z_grasp + CLEAR_M))

@@ -34,6 +34,7 @@ from romannet.common.action import Action
 from romannet.common.config import Config, load_config_text
 from romannet.common.episode_rules import ideal_actions
 from romannet.common.failure_memory import FailureMemory
+from romannet.common.grasp_clearance import PickClearance
 from romannet.common.interfaces import Observation
 from romannet.common.model import RoManNet, load_tensors
 from romannet.common.policy import InferenceEngine, decide
@@ -153,7 +154,7 @@ class Worker:
         actor does, exploration.failure_memory_px)."""
         if self.engine is not None:
             return decide(self.engine, obs.color_hm, obs.depth_hm, obs.holding, 0.0, rng, env.primitives,
-                          cfg.exploration, avoid=memory)
+                          cfg.exploration, avoid=memory, clearance=PickClearance.for_config(cfg))
         if self.setup.policy == "oracle":
             return oracle_action(env)
         return random_action(obs.holding, env.primitives, obs.depth_hm.shape, rng)

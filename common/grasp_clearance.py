@@ -1,0 +1,190 @@
+"""Where a top-down pick's open fingers and hand come down, read from the depth heightmap alone.
+
+A pick whose open finger lands on a neighbour stops high and closes over the object's top (in clutter most
+failed picks do: docs/journal.md, "Why clutter picks fail"). The rule here is the one the scripted oracle
+(actor/sim/oracle.py) judges its grasps by, on what a robot sees: a pick at pixel p along closing angle a is
+clear when nothing under either open finger, nor under the hand less the hand's height above the fingertips,
+is higher than the fingers' grasp height at p, and p itself holds material at the pads' height.
+`clear_picks` evaluates it for every pixel on `bins` closing angles over half a turn (the hand is
+symmetric); a decision then picks only at pixels with a clear angle, at the clear angle nearest the pick
+net's own (`nearest_clear_angle`).
+
+Heights are metres above the table (the depth heightmap's values); angles as in common.action: from the x
+(column) axis toward the y (row) axis, the finger-closing axis.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+# Where an open finger comes down, from the pick's centre: from the inner face at the finger travel, this
+# far outward along the closing axis and this far either side across it (the Panda finger's lower part).
+FINGER_OUTWARD_M = 0.02
+FINGER_HALF_WIDTH_M = 0.012
+# The hand above the fingers: 21 cm along the closing axis, 7 cm across, its underside this far above the
+# fingertips.
+HAND_HALF_LENGTH_M = 0.105
+HAND_HALF_WIDTH_M = 0.035
+HAND_ABOVE_TIPS_M = 0.045
+# The Panda's fingers squeeze with their lowest centimetre: there must be material at these heights above
+# the fingertips (an arch grasped over its hole has material only higher up, and slips: measured).
+PAD_HEIGHTS_M = (0.003, 0.008)
+CLEAR_M = 0.003  # the fingers reach their grasp height when nothing in their footprint is higher than this above it
+
+
+@dataclass(frozen=True)
+class GripperFootprint:
+    """A parallel gripper's open fingers and hand as they come down, and how deep a pick goes."""
+
+    travel_m: float  # each finger's inner face from the centre when open
+    pick_depth_m: float  # the fingertips go this far below the surface at the pick's pixel
+    tip_floor_m: float  # ... but never lower than this above the table
+    finger_outward_m: float = FINGER_OUTWARD_M
+    finger_half_width_m: float = FINGER_HALF_WIDTH_M
+    hand_half_length_m: float = HAND_HALF_LENGTH_M
+    hand_half_width_m: float = HAND_HALF_WIDTH_M
+    hand_above_tips_m: float = HAND_ABOVE_TIPS_M
+    clear_m: float = CLEAR_M
+
+    def grasp_height(self, surface_m: np.ndarray | float) -> np.ndarray | float:
+        """The fingertips' grasp height (m above the table) below a surface at this height."""
+        return np.maximum(np.asarray(surface_m) - self.pick_depth_m, self.tip_floor_m)
+
+
+def zone_max(depth_hm: np.ndarray, resolution_m: float, xy_px: tuple[float, float], angle_rad: float,
+             along_m: tuple[float, float], half_width_m: float) -> float:
+    """Highest heightmap value in a rectangle: from along_m[0] to along_m[1] from the point xy_px (column,
+    row; pixel units) along angle_rad, half_width_m either side of that line; 0 (the table) outside the map."""
+    d = np.array([math.cos(angle_rad), math.sin(angle_rad)])
+    n = np.array([-math.sin(angle_rad), math.cos(angle_rad)])
+    step = 0.5  # pixel
+    s = np.arange(along_m[0] / resolution_m, along_m[1] / resolution_m + 1e-9, step)
+    t = np.arange(-half_width_m / resolution_m, half_width_m / resolution_m + 1e-9, step)
+    pts = np.asarray(xy_px, dtype=np.float64) + s[:, None, None] * d + t[None, :, None] * n
+    cols = np.floor(pts[..., 0]).astype(int).ravel()
+    rows = np.floor(pts[..., 1]).astype(int).ravel()
+    inside = (rows >= 0) & (rows < depth_hm.shape[0]) & (cols >= 0) & (cols < depth_hm.shape[1])
+    return float(depth_hm[rows[inside], cols[inside]].max()) if inside.any() else 0.0
+
+
+def footprint_height(depth_hm: np.ndarray, resolution_m: float, xy_px: tuple[float, float], angle_rad: float,
+                     g: GripperFootprint) -> float:
+    """The lowest the fingertips come down over xy_px (column, row; pixel units) along angle_rad before an
+    open finger or the hand lands on something (m above the table)."""
+    travel = (g.travel_m, g.travel_m + g.finger_outward_m)
+    fingers = max(zone_max(depth_hm, resolution_m, xy_px, angle_rad, travel, g.finger_half_width_m),
+                  zone_max(depth_hm, resolution_m, xy_px, angle_rad + math.pi, travel, g.finger_half_width_m))
+    hand = zone_max(depth_hm, resolution_m, xy_px, angle_rad, (-g.hand_half_length_m, g.hand_half_length_m),
+                    g.hand_half_width_m)
+    return max(fingers, hand - g.hand_above_tips_m)
+
+
+def _rotation(angle_rad: float, shape: tuple[int, int], canvas: int) -> np.ndarray:
+    """2x3 affine from a canvas pixel (u along the closing axis, v across; centred) to a heightmap pixel
+    (column, row), for cv2.warpAffine with WARP_INVERSE_MAP."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    a = np.array([[c, -s], [s, c]])
+    centre = np.array([(shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0])
+    b = centre - a @ np.array([(canvas - 1) / 2.0, (canvas - 1) / 2.0])
+    return np.hstack([a, b[:, None]]).astype(np.float64)
+
+
+def _shift_cols(img: np.ndarray, k: int) -> np.ndarray:
+    """out[:, u] = img[:, u + k], zero where u + k falls outside."""
+    out = np.zeros_like(img)
+    if k >= 0:
+        out[:, :img.shape[1] - k] = img[:, k:]
+    else:
+        out[:, -k:] = img[:, :img.shape[1] + k]
+    return out
+
+
+def _box_max(img: np.ndarray, half_rows: int, half_cols: int) -> np.ndarray:
+    kernel = np.ones((2 * half_rows + 1, 2 * half_cols + 1), dtype=np.uint8)
+    return cv2.dilate(img, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
+
+
+def landing_heights(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, bins: int) -> np.ndarray:
+    """(bins, h, w) float32: for each closing angle k * pi / bins and pixel, the highest heightmap value under
+    either open finger or under the hand less its height above the fingertips (m above the table)."""
+    hm = np.ascontiguousarray(depth_hm, dtype=np.float32)
+    h, w = hm.shape
+    canvas = int(math.ceil(math.hypot(h, w))) + 2
+    s0 = g.travel_m / resolution_m
+    s1 = (g.travel_m + g.finger_outward_m) / resolution_m
+    finger_mid = int(round((s0 + s1) / 2.0))
+    finger_half = (int(round(s1 - s0)) + 1) // 2
+    finger_across = int(round(g.finger_half_width_m / resolution_m))
+    hand_along = int(round(g.hand_half_length_m / resolution_m))
+    hand_across = int(round(g.hand_half_width_m / resolution_m))
+    out = np.empty((bins, h, w), dtype=np.float32)
+    flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+    for k in range(bins):
+        m = _rotation(k * math.pi / bins, (h, w), canvas)
+        rot = cv2.warpAffine(hm, m, (canvas, canvas), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        fingers = _box_max(rot, finger_across, finger_half)
+        worst = np.maximum(_shift_cols(fingers, finger_mid), _shift_cols(fingers, -finger_mid))
+        np.maximum(worst, _box_max(rot, hand_across, hand_along) - g.hand_above_tips_m, out=worst)
+        back = cv2.invertAffineTransform(m)
+        out[k] = cv2.warpAffine(worst, back, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    return out
+
+
+def angle_bin(angle_rad: np.ndarray, bins: int) -> np.ndarray:
+    """The nearest of `bins` closing angles k * pi / bins (a closing axis and its reverse are one)."""
+    return np.rint(np.mod(angle_rad, math.pi) / (math.pi / bins)).astype(np.int64) % bins
+
+
+def clear_picks(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, bins: int) -> np.ndarray:
+    """bool (bins, h, w): a pick at that pixel along closing angle k * pi / bins gets its fingers down to the
+    grasp height, and the pixel holds material at the pads' height (a pick centred over the floor closes on
+    nothing)."""
+    grasp = g.grasp_height(depth_hm)
+    on_material = depth_hm >= grasp + max(PAD_HEIGHTS_M)
+    return (landing_heights(depth_hm, resolution_m, g, bins) <= grasp + g.clear_m) & on_material
+
+
+def nearest_clear_angle(angle_map: np.ndarray, clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(valid bool (h, w), angles float32 (h, w)): where some closing angle is clear, and there the pixel's own
+    angle when its bin is clear, else the clear bin's angle nearest to it (closing axes modulo pi)."""
+    bins = clear.shape[0]
+    own = np.asarray(angle_map, dtype=np.float32)
+    centres = (np.arange(bins, dtype=np.float32) * np.float32(math.pi / bins))[:, None, None]
+    gap = np.abs(np.mod(own[None] - centres + np.float32(math.pi / 2), np.float32(math.pi)) - np.float32(math.pi / 2))
+    gap = np.where(clear, gap, np.float32(np.inf))
+    best = np.argmin(gap, axis=0)
+    valid = clear.any(axis=0)
+    rows, cols = np.indices(own.shape)
+    keep = clear[angle_bin(own, bins), rows, cols]
+    angles = np.where(keep | ~valid, own, best.astype(np.float32) * np.float32(math.pi / bins))
+    return valid, angles.astype(np.float32, copy=False)
+
+
+@dataclass(frozen=True)
+class PickClearance:
+    """The decision's clearance rule: which pick pixels are valid on a heightmap (decide(..., clearance=))."""
+
+    footprint: GripperFootprint
+    resolution_m: float
+    bins: int = 16
+
+    @classmethod
+    def for_config(cls, cfg) -> PickClearance | None:
+        """The rule of `exploration.pick_clearance` with the simulated hand (sim.finger_travel_m, pick depth and
+        fingertip floor) on the workspace's heightmap; None when it is off."""
+        if not cfg.exploration.pick_clearance:
+            return None
+        sim = cfg.sim
+        footprint = GripperFootprint(travel_m=sim.finger_travel_m, pick_depth_m=sim.pick_depth_m,
+                                     tip_floor_m=sim.fingertip_clearance_m)
+        return cls(footprint, cfg.workspace.resolution_m)
+
+    def apply(self, depth_hm: np.ndarray, angle_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(valid bool (h, w), angles float32 (h, w)): the pixels with a clear pick, each at its own angle or
+        the nearest clear one (clear_picks, nearest_clear_angle)."""
+        clear = clear_picks(np.asarray(depth_hm, dtype=np.float32), self.resolution_m, self.footprint, self.bins)
+        return nearest_clear_angle(angle_map, clear)
