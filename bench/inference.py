@@ -6,6 +6,8 @@
 * decision_harmonics2_ms: the same path with the two-harmonic rotation head
   (model.rotation_harmonics = 2: 5 output channels per net instead of 3, and the two-candidate decode);
   harmonics2_vs_decision is its ratio to decision_ms.
+* decision_clearance_ms: the same decision with the pick clearance rule (exploration.pick_clearance; the RG2's
+  footprint, common/grasp_clearance.py); clearance_vs_decision is its ratio to decision_ms.
 * naive_fp32_all_nets_ms: eager fp32 forward of all three nets (plain nn.Module, NCHW, inference mode).
 * rotations16_ms: the authors' approach — the three nets over 16 rotated 320×320 copies of the padded
   input (affine_grid / grid_sample, nearest, as in their code), outputs rotated back, then an argmax.
@@ -40,6 +42,7 @@ import torch
 import torch.nn.functional as F
 
 from romannet.common.config import ExplorationConfig, ModelConfig
+from romannet.common.grasp_clearance import GripperFootprint, PickClearance
 from romannet.common.int8net import Int8Net, int8_ops_available
 from romannet.common.model import RoManNet, parameter_count, preprocess, state_dict_to_tensors
 from romannet.common.policy import (
@@ -201,6 +204,11 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
     def decision_by(e: InferenceEngine) -> Callable[[], object]:
         return lambda: decide(e, color, depth, False, 0.0, rng, primitives, exploration)
 
+    clearance = PickClearance(GripperFootprint(travel_m=0.055, pick_depth_m=0.03, tip_floor_m=0.006), 0.002)
+
+    def decision_clearance() -> object:
+        return decide(engine, color, depth, False, 0.0, rng, primitives, exploration, clearance=clearance)
+
     def decision_exploring() -> object:
         return decide(engine, color, depth, False, 1.0, rng, primitives, exploration)
 
@@ -214,7 +222,7 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
                 net(x)
 
     timed: dict[str, Callable[[], object]] = {"naive": naive, "explore": decision_exploring,
-                                              "harmonics2": decision_by(engine2)}
+                                              "harmonics2": decision_by(engine2), "clearance": decision_clearance}
     timed.update((f"decision_{p}", decision_by(e)) for p, e in engines.items() if p not in slow)
     for fn in timed.values():
         fn()  # warm-up
@@ -256,6 +264,8 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
         "decision_exploring_ms": _summary(samples["explore"])[0],
         "decision_harmonics2_ms": _summary(samples["harmonics2"])[0],
         "harmonics2_vs_decision": round(_summary(samples["harmonics2"])[0] / decision_ms, 3),
+        "decision_clearance_ms": _summary(samples["clearance"])[0],
+        "clearance_vs_decision": round(_summary(samples["clearance"])[0] / decision_ms, 3),
         "naive_fp32_all_nets_ms": naive_ms,
         "naive_fp32_all_nets_min_ms": naive_min,
         "rotations16_ms": rotations_ms,
