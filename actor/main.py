@@ -61,9 +61,6 @@ def build_env(cfg: Config, robot: str = "sim", camera: str | None = None) -> Env
         return SimEnv.from_config(cfg)
     if camera not in (None, "realsense"):
         raise ConfigError("--camera", camera, "a real robot needs a real camera: --camera realsense")
-    if cfg.exploration.pick_clearance:
-        raise ConfigError("exploration.pick_clearance", True, "the clearance rule models the simulated hand's "
-                          "fingers; a real robot's gripper has no footprint model yet: set it to false")
     if not cfg.robot.calibration_file:
         raise ConfigError("robot.calibration_file", "", "a real robot needs the camera-to-robot calibration: "
                           "run `romannet calibrate --config robot.toml --out calibration.json` and set "
@@ -80,9 +77,19 @@ def build_env(cfg: Config, robot: str = "sim", camera: str | None = None) -> Env
     return env
 
 
+def for_robot(cfg: Config, robot: str) -> Config:
+    """cfg as this robot runs it: the pick clearance rule models the simulated hand's fingers (the real tools
+    have no footprint model yet), so a real robot picks without it, and says so."""
+    if robot == "sim" or not cfg.exploration.pick_clearance:
+        return cfg
+    log.warning("exploration.pick_clearance is off on a real robot: the rule models the simulated hand's fingers")
+    return dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, pick_clearance=False))
+
+
 def run(args: argparse.Namespace) -> int:
     """Run one actor for parsed CLI arguments (see romannet/cli.py); returns the exit code."""
-    cfg = load_config(args.config, args.overrides)
+    robot = getattr(args, "robot", "sim")
+    cfg = for_robot(load_config(args.config, args.overrides), robot)
     acfg = resolve_actor_config(cfg, args)
     run_dir = Path(args.run_dir)
     paths = ActorPaths.of(run_dir, acfg)
@@ -96,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
 
     with stop_on_signals(stop, "finishing the current action, then flush and exit"):
         engine = InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
-        env = build_env(cfg, getattr(args, "robot", "sim"), getattr(args, "camera", None))
+        env = build_env(cfg, robot, getattr(args, "camera", None))
         try:
             with open_session(zenoh_config) as session:
                 token = session.liveliness().declare_token(RunKeys(cfg.run_id).actor_alive(acfg.actor_id))

@@ -51,6 +51,7 @@ SAVED_WITHOUT: dict[str, Any] = {
     "model.rotation_harmonics": 1,
     "replay.samples_per_insert": 0.0,
     "sim.coupled_fingers": False,
+    "exploration.pick_clearance": False,
 }
 
 
@@ -243,9 +244,11 @@ class ExplorationConfig:
     # not chosen again (common/failure_memory.py): a greedy policy otherwise repeats a failed pick on the scene
     # it did not change until the episode ends; 10 px beat 20 and 0 on 3 checkpoints (docs/results.md). 0: off.
     failure_memory_px: int = 10
-    # Pick only where the open fingers and the hand come down to the grasp height at the pick net's angle,
-    # judged on the depth heightmap by the simulated hand's footprint (common/grasp_clearance.py).
-    pick_clearance: bool = False
+    # Pick only where the open fingers and the hand come down to the grasp height, at the clear closing angle
+    # nearest the pick net's own, judged on the depth heightmap by the simulated hand's footprint
+    # (common/grasp_clearance.py): a finger landing on a neighbour was most failed clutter picks, and the rule
+    # raised the clutter recipe's pick success at 30 blocks from 63.9 % to 81.9 % over 3 seeds (docs/results.md).
+    pick_clearance: bool = True
     epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
     epsilon_decay: float = 0.9998
     epsilon_min: float = 0.1

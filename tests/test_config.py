@@ -217,13 +217,16 @@ def test_a_saved_config_without_a_field_whose_default_changed_loads_as_it_ran(tm
     import tomli_w
 
     from romannet.common.config import SAVED_WITHOUT, as_saved, load_config_text, load_saved_config
-    assert set(SAVED_WITHOUT) == {"model.rotation_harmonics", "replay.samples_per_insert", "sim.coupled_fingers"}
+    assert set(SAVED_WITHOUT) == {"model.rotation_harmonics", "replay.samples_per_insert", "sim.coupled_fingers",
+                                  "exploration.pick_clearance"}
     old = to_dict(Config())
     del old["model"]["rotation_harmonics"], old["replay"]["samples_per_insert"], old["sim"]["coupled_fingers"]
+    del old["exploration"]["pick_clearance"]
     path = tmp_path / "config.toml"
     path.write_text(tomli_w.dumps(old))
     for cfg in (load_saved_config(path), load_config_text(path.read_text())):
         assert cfg.model.rotation_harmonics == 1 and cfg.replay.spi_limit is None and not cfg.sim.coupled_fingers
+        assert not cfg.exploration.pick_clearance
     assert load_saved_config(path, ["model.rotation_harmonics=2"]).model.rotation_harmonics == 2
     assert load_config(path) == Config()  # a recipe: the defaults
     assert as_saved({"model": {"channels": 32}})["model"] == {"channels": 32, "rotation_harmonics": 1}

@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 from _learner_helpers import SMALL_MODEL
 
-from romannet.actor.main import build_env
-from romannet.common.config import ExplorationConfig, load_config_text
-from romannet.common.configbase import ConfigError
+from romannet.actor.main import for_robot
+from romannet.common.config import ExplorationConfig, load_config, load_config_text
 from romannet.common.grasp_clearance import (
     GripperFootprint,
     PickClearance,
@@ -24,6 +25,7 @@ from romannet.common.model import RoManNet
 from romannet.common.policy import decide
 from romannet.common.scenes import synthetic_scene
 
+STACKING = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "stacking.toml"
 RG2 = GripperFootprint(travel_m=0.055, pick_depth_m=0.03, tip_floor_m=0.006)
 RES = 0.002
 BINS = 16
@@ -111,14 +113,20 @@ def test_decide_picks_only_where_a_pick_is_clear_at_the_angle_it_executes() -> N
 
 
 def test_pick_clearance_follows_the_config_and_the_simulated_hand() -> None:
-    assert PickClearance.for_config(load_config_text("")) is None
+    assert PickClearance.for_config(load_config_text("[exploration]\npick_clearance = false\n")) is None
     cfg = load_config_text('[exploration]\npick_clearance = true\n[sim]\nhand = "panda"\n')
     rule = PickClearance.for_config(cfg)
     assert rule is not None and rule.footprint.travel_m == pytest.approx(0.04)
     assert rule.resolution_m == cfg.workspace.resolution_m
+    assert load_config().exploration.pick_clearance  # the clutter recipe's, and so the default
+    assert not load_config(STACKING).exploration.pick_clearance  # not measured on stacking
+    # A config saved before the rule existed (a run's, a model package's) ran without it, and still does.
+    assert not load_config_text("[exploration]\nfailure_memory_px = 10\n").exploration.pick_clearance
 
 
-def test_a_real_robot_actor_refuses_the_rule_it_has_no_gripper_model_for() -> None:
-    cfg = load_config_text("[exploration]\npick_clearance = true\n")
-    with pytest.raises(ConfigError, match="pick_clearance"):
-        build_env(cfg, "ur", "realsense")
+def test_a_real_robot_actor_runs_without_the_rule_and_says_so(caplog) -> None:
+    cfg = load_config()
+    with caplog.at_level(logging.WARNING):
+        real = for_robot(cfg, "ur")
+    assert not real.exploration.pick_clearance and "pick_clearance is off on a real robot" in caplog.text
+    assert for_robot(cfg, "sim") is cfg
