@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -96,7 +97,10 @@ class RecordingClient(InProcessReplayClient):
         return ack
 
 
-def test_loop_sends_stamps_versions_and_records(tmp_path: Path, cfg: Config, store: ReplayStore) -> None:
+@pytest.mark.parametrize("clearance", [False, True])
+def test_loop_sends_stamps_versions_and_records(tmp_path: Path, cfg: Config, store: ReplayStore,
+                                                clearance: bool) -> None:
+    cfg = dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, pick_clearance=clearance))
     env = SimEnv.from_config(cfg)
     weights = FakeWeights(cfg, version=7, after=4)
     client = RecordingClient(store)
@@ -122,7 +126,8 @@ def test_loop_sends_stamps_versions_and_records(tmp_path: Path, cfg: Config, sto
     assert all(t.task == "clutter" and t.sim_seed is not None for t in transitions)
     # V(s_t+1) travels with each transition a decision followed (not at an episode's end, nor the last
     # action): the next decision's largest Q over every pixel, taken with the weights that then chose the next
-    # action; a greedy choice that avoided no failure (exploration.failure_memory_px) is that largest Q.
+    # action, unclear picks included; a greedy choice that avoided no failure (exploration.failure_memory_px) and
+    # no unclear pick (exploration.pick_clearance) is that largest Q.
     for t, nxt in zip(transitions, transitions[1:], strict=False):
         avoiding = not t.success  # a failure is remembered until a success clears the memory
         if t.done:
@@ -130,7 +135,7 @@ def test_loop_sends_stamps_versions_and_records(tmp_path: Path, cfg: Config, sto
             continue
         assert nxt.episode_id == t.episode_id and t.next_value_version == nxt.policy_version
         assert t.next_value >= nxt.action.q_value - 1e-6
-        if not nxt.action.explored and not avoiding:
+        if not nxt.action.explored and not avoiding and not clearance:
             assert t.next_value == pytest.approx(nxt.action.q_value, abs=1e-6)
     assert transitions[-1].next_value is None
     # One MCAP file per episode with that episode's step count, finished (summary present).
