@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .config import Config
+
 # Where an open finger comes down, from the pick's centre: from the inner face at the finger travel, this
 # far outward along the closing axis and this far either side across it (the Panda finger's lower part).
 FINGER_OUTWARD_M = 0.02
@@ -173,7 +175,7 @@ class PickClearance:
     bins: int = 16
 
     @classmethod
-    def for_config(cls, cfg) -> PickClearance | None:
+    def for_config(cls, cfg: Config) -> PickClearance | None:
         """The rule of `exploration.pick_clearance` with the simulated hand (sim.finger_travel_m, pick depth and
         fingertip floor) on the workspace's heightmap; None when it is off."""
         if not cfg.exploration.pick_clearance:
