@@ -185,8 +185,7 @@ class PickClearance:
                                      tip_floor_m=sim.fingertip_clearance_m)
         return cls(footprint, cfg.workspace.resolution_m)
 
-    def apply(self, depth_hm: np.ndarray, angle_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(valid bool (h, w), angles float32 (h, w)): the pixels with a clear pick, each at its own angle or
-        the nearest clear one (clear_picks, nearest_clear_angle)."""
-        clear = clear_picks(np.asarray(depth_hm, dtype=np.float32), self.resolution_m, self.footprint, self.bins)
-        return nearest_clear_angle(angle_map, clear)
+    def clear(self, depth_hm: np.ndarray) -> np.ndarray:
+        """bool (bins, h, w): clear_picks on this heightmap (it depends on the heightmap alone, so a decision
+        computes it once however many times its nets run)."""
+        return clear_picks(np.asarray(depth_hm, dtype=np.float32), self.resolution_m, self.footprint, self.bins)

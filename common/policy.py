@@ -26,7 +26,7 @@ from .config import ExplorationConfig, ModelConfig
 from .exploration import select_action
 from .failure_memory import FailureMemory, masked_q
 from .fastnet import FastNet, fused_ops_available
-from .grasp_clearance import PickClearance
+from .grasp_clearance import PickClearance, nearest_clear_angle
 from .int8net import Int8Net, int8_ops_available, int8_weight_bits
 from .model import RoManNet, decode_rotation, load_tensors, preprocess
 
@@ -270,18 +270,18 @@ def reference_maps(model: RoManNet, color_hm: np.ndarray, depth_hm: np.ndarray,
     return _to_maps(outputs)
 
 
-def with_clearance(avoided: dict[str, np.ndarray] | None, clearance: PickClearance | None, depth_hm: np.ndarray,
+def with_clearance(avoided: dict[str, np.ndarray] | None, clear_bins: np.ndarray | None,
                    maps: PolicyMaps) -> tuple[dict[str, np.ndarray] | None, dict[str, np.ndarray]]:
     """(valid pixels, angle maps) a decision chooses from: the failure memory's pixels (avoided), and on the
-    pick map only the pixels with a clear pick, at the clear angle nearest the net's (PickClearance.apply).
-    A pick map with no clear pixel left keeps the failure memory's pixels and the net's angles."""
-    if clearance is None or "pick" not in maps.angle:
+    pick map only the pixels with a clear pick (clear_bins: PickClearance.clear), at the clear angle nearest
+    the net's. A pick map with no clear pixel left keeps the failure memory's pixels and the net's angles."""
+    if clear_bins is None or "pick" not in maps.angle:
         return avoided, maps.angle
-    clear, angles = clearance.apply(depth_hm, maps.angle["pick"])
+    clear, angles = nearest_clear_angle(maps.angle["pick"], clear_bins)
     allowed = clear if avoided is None else clear & avoided["pick"]
     if not allowed.any():
         return avoided, maps.angle
-    valid = dict(avoided) if avoided is not None else {p: np.ones(depth_hm.shape, dtype=bool) for p in maps.q}
+    valid = dict(avoided) if avoided is not None else {p: np.ones(clear.shape, dtype=bool) for p in maps.q}
     valid["pick"] = allowed
     return valid, {**maps.angle, "pick": angles}
 
@@ -296,13 +296,14 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     Holding an object only PlaceNet runs; otherwise PushNet and PickNet (PickNet only when "push" is not in
     `primitives`). avoid: the episode's failures since its last success, whose pixels are not chosen again
     (common/failure_memory.py); the returned maps leave them in, as they are the state's values, not the
-    decision's. clearance: picks only where the open fingers and the hand come down to the grasp height at
-    the pick net's own angle (common/grasp_clearance.py). Returns the Action, or (Action, PolicyMaps) when
+    decision's. clearance: picks only where the open fingers and the hand come down to the grasp height, at
+    the clear angle nearest the pick net's own (common/grasp_clearance.py). Returns the Action, or (Action, PolicyMaps) when
     return_maps is True.
     """
     nets = nets_to_run(holding, primitives)
     engine = model if isinstance(model, InferenceEngine) else None
     avoided = None if avoid is None else avoid.masks(nets, depth_hm.shape)
+    clear_bins = clearance.clear(depth_hm) if clearance is not None and "pick" in nets else None
 
     valid: dict[str, np.ndarray] | None = avoided
     angles: dict[str, np.ndarray] = {}
@@ -310,7 +311,7 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     def masked(raw: PolicyMaps) -> tuple[PolicyMaps, dict[str, np.ndarray]]:
         """The maps as computed, and the Q maps the decision chooses from (the avoided and unclear pixels sunk)."""
         nonlocal valid, angles
-        valid, angles = with_clearance(avoided, clearance, depth_hm, raw)
+        valid, angles = with_clearance(avoided, clear_bins, raw)
         chosen = raw.q if valid is None else {p: masked_q(q, valid[p]) for p, q in raw.q.items()}
         return raw, chosen
 
