@@ -143,6 +143,9 @@ class TaskConfig:
         return ("push", "pick") if self.use_push else ("pick",)
 
 
+PICK_ANGLE_BINS = (0, 4, 8, 16, 32)
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """RoManNet architecture (three GR-ConvNet variants) and the inference numerics of the actor."""
@@ -160,6 +163,12 @@ class ModelConfig:
     # reward, and its peaks come from what was learned. (Not zero: a flat map gives the argmax and the
     # exploration candidates no order but the pixel index, and failures, labelled 0, give it no gradient.)
     q_head_init: Literal["default", "small"] = "small"
+    # The pick net's Q per closing angle: 0 = one Q per pixel, the angle read from the rotation head (trained by
+    # regression toward successful angles only, it never learns which angles fail: at lone cubes the clutter
+    # recipe's head points anywhere between square and diagonal, docs/journal.md); K = a Q per pixel and per
+    # closing angle k pi / K, as VPG's and the paper's code have per input rotation, from K output channels of
+    # one pass. The argmax takes pixel and angle together (with the pick clearance rule, among the clear ones).
+    pick_angle_bins: int = 0
     # Inference numerics: "auto" picks bf16 where the CPU computes it natively, else fp32; "int8": the trunk in
     # int8 (common/int8net.py, near ties rerun in fp32).
     precision: Literal["auto", "fp32", "bf16", "int8"] = "auto"
@@ -173,6 +182,8 @@ class ModelConfig:
                 "must be 1 (cos/sin of the angle) or 2 (also its second harmonic)")
         require(self.q_head_init in ("default", "small"), "model.q_head_init", self.q_head_init,
                 "must be 'default' (PyTorch's init) or 'small' (that init times 0.01: Q maps start near 0)")
+        require(self.pick_angle_bins in PICK_ANGLE_BINS, "model.pick_angle_bins", self.pick_angle_bins,
+                "must be 0 (the angle from the rotation head) or 4, 8, 16 or 32 (a Q per closing angle)")
         require(self.precision in ("auto", "fp32", "bf16", "int8"), "model.precision", self.precision,
                 "must be 'auto' (bf16 where native, else fp32), 'fp32', 'bf16' or 'int8'")
         require(self.num_threads >= 0, "model.num_threads", self.num_threads, "must be >= 0 (0 = torch default)")

@@ -89,7 +89,8 @@ class _Layer:
 
 
 class FastNet:
-    """Inference-only form of one GRConvNet: (B,4,H,W) fp32 → (B,H,W,1+R) fp32 = (q, rotation channels...)."""
+    """Inference-only form of one GRConvNet: (B,4,H,W) fp32 → (B,H,W,K+R) fp32 = (K Q channels, R rotation
+    channels); K = 1 but for a pick net with a Q per closing angle."""
 
     def __init__(self, net: GRConvNet, precision: str = "fp32", fused: bool | None = None):
         if net.training:
@@ -112,9 +113,10 @@ class FastNet:
                        _Layer(*_fold(net.deconv2, net.bn5, True, dtype), dtype, 2, 1, True, fused)]
             self.conv6 = _Layer(net.conv6.weight, net.conv6.bias, dtype, 1, 4, False, fused)
             heads_w = torch.cat([net.q_head.weight, net.rot_head.weight], 0)[:, :, 0, 0]
-            self.heads_w = heads_w.detach().float().t().contiguous()  # (C, 1 + rotation channels)
+            self.heads_w = heads_w.detach().float().t().contiguous()  # (C, Q + rotation channels)
             self.heads_b = torch.cat([net.q_head.bias, net.rot_head.bias]).detach().float()
             self.outputs = int(self.heads_b.numel())
+            self.q_channels = int(net.q_head.out_channels)
 
     def __call__(self, x: Tensor) -> Tensor:
         return self.tail(self.trunk(x))
@@ -134,7 +136,7 @@ class FastNet:
         return x
 
     def tail(self, x: Tensor) -> Tensor:
-        """conv6 then the 1x1 heads (one fp32 addmm): (B,C,H,W) features → (B,H,W,1+R)."""
+        """conv6 then the 1x1 heads (one fp32 addmm): (B,C,H,W) features → (B,H,W,K+R)."""
         x = self.conv6(x, relu=False)
         b, c, h, w = x.shape
         rows = x.permute(0, 2, 3, 1).reshape(-1, c).float()  # a view for channels_last

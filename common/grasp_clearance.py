@@ -35,6 +35,7 @@ HAND_ABOVE_TIPS_M = 0.045
 # The Panda's fingers squeeze with their lowest centimetre: there must be material at these heights above
 # the fingertips (an arch grasped over its hole has material only higher up, and slips: measured).
 PAD_HEIGHTS_M = (0.003, 0.008)
+DEFAULT_BINS = 16  # closing angles the rule is judged on (over half a turn)
 CLEAR_M = 0.003  # the fingers reach their grasp height when nothing in their footprint is higher than this above it
 
 
@@ -136,6 +137,11 @@ def landing_heights(depth_hm: np.ndarray, resolution_m: float, g: GripperFootpri
     return out
 
 
+def bin_angles(bins: int) -> np.ndarray:
+    """The closing angles k pi / bins (radians, float32), k = 0 .. bins - 1."""
+    return np.arange(bins, dtype=np.float32) * np.float32(math.pi / bins)
+
+
 def angle_bin(angle_rad: np.ndarray, bins: int) -> np.ndarray:
     """The nearest of `bins` closing angles k * pi / bins (a closing axis and its reverse are one)."""
     return np.rint(np.mod(angle_rad, math.pi) / (math.pi / bins)).astype(np.int64) % bins
@@ -155,7 +161,7 @@ def nearest_clear_angle(angle_map: np.ndarray, clear: np.ndarray) -> tuple[np.nd
     angle when its bin is clear, else the clear bin's angle nearest to it (closing axes modulo pi)."""
     bins = clear.shape[0]
     own = np.asarray(angle_map, dtype=np.float32)
-    centres = (np.arange(bins, dtype=np.float32) * np.float32(math.pi / bins))[:, None, None]
+    centres = bin_angles(bins)[:, None, None]
     gap = np.abs(np.mod(own[None] - centres + np.float32(math.pi / 2), np.float32(math.pi)) - np.float32(math.pi / 2))
     gap = np.where(clear, gap, np.float32(np.inf))
     best = np.argmin(gap, axis=0)
@@ -172,18 +178,19 @@ class PickClearance:
 
     footprint: GripperFootprint
     resolution_m: float
-    bins: int = 16
+    bins: int = DEFAULT_BINS
 
     @classmethod
     def for_config(cls, cfg: Config) -> PickClearance | None:
         """The rule of `exploration.pick_clearance` with the simulated hand (sim.finger_travel_m, pick depth and
-        fingertip floor) on the workspace's heightmap; None when it is off."""
+        fingertip floor) on the workspace's heightmap, on the pick net's closing angles where it has a Q per
+        angle (model.pick_angle_bins); None when it is off."""
         if not cfg.exploration.pick_clearance:
             return None
         sim = cfg.sim
         footprint = GripperFootprint(travel_m=sim.finger_travel_m, pick_depth_m=sim.pick_depth_m,
                                      tip_floor_m=sim.fingertip_clearance_m)
-        return cls(footprint, cfg.workspace.resolution_m)
+        return cls(footprint, cfg.workspace.resolution_m, cfg.model.pick_angle_bins or DEFAULT_BINS)
 
     def clear(self, depth_hm: np.ndarray) -> np.ndarray:
         """bool (bins, h, w): clear_picks on this heightmap (it depends on the heightmap alone, so a decision

@@ -157,7 +157,7 @@ def folded_head(fast: FastNet) -> tuple[Tensor, Tensor]:
 
 
 class Int8Net:
-    """Inference form of one GRConvNet with an int8 trunk: (B,4,H,W) fp32 → (B,H,W,1+R) fp32, as FastNet."""
+    """Inference form of one GRConvNet with an int8 trunk: (B,4,H,W) fp32 → (B,H,W,K+R) fp32, as FastNet."""
 
     def __init__(self, net: GRConvNet, fused: bool | None = None, weight_bits: int = WEIGHT_BITS_VNNI):
         """weight_bits: 8 where oneDNN has VNNI, else 7 (`int8_weight_bits`)."""
@@ -209,6 +209,7 @@ def error_spread(net: Int8Net, x: Tensor) -> float:
     pixels whose int8 Q values are further apart keep their order (on x, and about as much on other scenes:
     measured). inf where the maps are not finite (weights a diverged learner sent)."""
     with torch.inference_mode():
-        error = net(x)[0, ..., 0] - net.exact(x)[0, ..., 0]
+        k = net.exact.q_channels
+        error = net(x)[0, ..., :k] - net.exact(x)[0, ..., :k]
         spread = float(error.max() - error.min())
     return spread if math.isfinite(spread) else math.inf

@@ -59,10 +59,11 @@ class ResidualBlock(nn.Module):
 
 
 class GRConvNet(nn.Module):
-    """One primitive's net: (B, 4, h, w) → (q (B, h, w), rotation (B, 2 * harmonics, h, w): cos, sin, ...)."""
+    """One primitive's net: (B, 4, h, w) → (q, rotation (B, 2 * harmonics, h, w): cos, sin, ...), q (B, h, w)
+    with one Q channel, (B, K, h, w) with K (a Q per closing angle k pi / K, model.pick_angle_bins)."""
 
     def __init__(self, channels: int = 32, residual_blocks: int = 5, in_channels: int = 4,
-                 rotation_harmonics: int = 1, q_head_scale: float = 1.0):
+                 rotation_harmonics: int = 1, q_head_scale: float = 1.0, q_channels: int = 1):
         super().__init__()
         c = channels
         self.conv1 = nn.Conv2d(in_channels, c, 9, padding=4)
@@ -78,7 +79,7 @@ class GRConvNet(nn.Module):
         self.deconv2 = nn.ConvTranspose2d(2 * c, c, 4, stride=2, padding=1)
         self.bn5 = nn.BatchNorm2d(c)
         self.conv6 = nn.Conv2d(c, c, 9, padding=4)
-        self.q_head = nn.Conv2d(c, 1, 1)
+        self.q_head = nn.Conv2d(c, q_channels, 1)
         self.rot_head = nn.Conv2d(c, 2 * rotation_harmonics, 1)
         if q_head_scale != 1.0:  # model.q_head_init = "small": every Q map starts within a few hundredths of 0
             with torch.no_grad():
@@ -96,7 +97,8 @@ class GRConvNet(nn.Module):
         x = torch.relu(self.bn4(self.deconv1(x)))
         x = torch.relu(self.bn5(self.deconv2(x)))
         x = self.conv6(x)
-        return self.q_head(x)[:, 0], self.rot_head(x)
+        q = self.q_head(x)
+        return (q[:, 0] if q.shape[1] == 1 else q), self.rot_head(x)
 
 
 class RoManNet(nn.Module):
@@ -111,12 +113,17 @@ class RoManNet(nn.Module):
             torch.manual_seed(seed)
             self.nets = nn.ModuleDict({
                 p: GRConvNet(cfg.channels, cfg.residual_blocks, rotation_harmonics=cfg.rotation_harmonics,
-                             q_head_scale=Q_HEAD_SCALES[cfg.q_head_init])
+                             q_head_scale=Q_HEAD_SCALES[cfg.q_head_init], q_channels=q_channels(cfg, p))
                 for p in PRIMITIVES
             })
 
     def forward(self, x: Tensor, primitive: str) -> tuple[Tensor, Tensor]:
         return self.nets[primitive](x)
+
+
+def q_channels(cfg: ModelConfig, primitive: str) -> int:
+    """Q channels of a primitive's net: model.pick_angle_bins for pick when set (a Q per closing angle), else 1."""
+    return cfg.pick_angle_bins if primitive == "pick" and cfg.pick_angle_bins > 0 else 1
 
 
 def parameter_count(net: nn.Module) -> int:

@@ -14,7 +14,7 @@ import logging
 import os
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
@@ -26,9 +26,9 @@ from .config import ExplorationConfig, ModelConfig
 from .exploration import select_action
 from .failure_memory import FailureMemory, masked_q
 from .fastnet import FastNet, fused_ops_available
-from .grasp_clearance import PickClearance, nearest_clear_angle
+from .grasp_clearance import PickClearance, bin_angles, nearest_clear_angle
 from .int8net import Int8Net, int8_ops_available, int8_weight_bits
-from .model import RoManNet, decode_rotation, load_tensors, preprocess
+from .model import RoManNet, decode_rotation, load_tensors, preprocess, q_channels
 
 logger = logging.getLogger(__name__)
 
@@ -47,10 +47,14 @@ ONEDNN_ISAS_WITHOUT_BF16 = ONEDNN_ISAS_WITHOUT_AVX2 + ("AVX2", "AVX2_VNNI", "AVX
 
 @dataclass(frozen=True)
 class PolicyMaps:
-    """The maps a decision was taken from: {primitive: (h, w) float32} Q values and yaw angles (radians)."""
+    """The maps a decision was taken from: {primitive: (h, w) float32} Q values and yaw angles (radians).
+
+    A net with a Q per closing angle (model.pick_angle_bins) has its (K, h, w) maps in q_bins; its q is their
+    maximum over the angles and its angle the angle of that maximum."""
 
     q: dict[str, np.ndarray]
     angle: dict[str, np.ndarray]
+    q_bins: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def nets_to_run(holding: bool, primitives: Sequence[str]) -> tuple[str, ...]:
@@ -203,7 +207,8 @@ class InferenceEngine:
             return (getattr(net, "exact", net) if exact else net)(x)[0]
 
     def forward(self, x: Tensor, primitives: Sequence[str], exact: bool = False) -> dict[str, Tensor]:
-        """{primitive: (h, w, 1 + R) fp32 tensor of (q, R rotation channels)} for a (1, 4, h, w) preprocessed input.
+        """{primitive: (h, w, K + R) fp32 tensor of (K Q channels, R rotation channels)} for a (1, 4, h, w)
+        preprocessed input.
         exact: an int8 engine's fp32 nets (others have no second form)."""
         names = tuple(primitives)
         if self._pool is None or len(names) < 2:
@@ -221,7 +226,8 @@ class InferenceEngine:
     def infer(self, color_hm: np.ndarray, depth_hm: np.ndarray, primitives: Sequence[str],
               exact: bool = False) -> PolicyMaps:
         """Q and angle maps of the named nets only, for one heightmap pair."""
-        return _to_maps(self.forward(preprocess(color_hm, depth_hm), primitives, exact))
+        outputs = self.forward(preprocess(color_hm, depth_hm), primitives, exact)
+        return _to_maps(outputs, {p: q_channels(self.cfg, p) for p in outputs})
 
     def tie_tolerance(self, nets: Sequence[str]) -> float:
         """How close two Q values in these nets' int8 maps may lie and still be in either order in fp32: the
@@ -243,14 +249,29 @@ class InferenceEngine:
         return tuple(p for p, q in chosen.items() if q.size and q.max() >= best - tolerance)
 
 
-def _to_maps(outputs: Mapping[str, Tensor]) -> PolicyMaps:
-    """{primitive: (h, w, 1 + R) tensor of (q, rotation channels)} → float32 numpy Q and decoded angle maps."""
-    q, angle = {}, {}
+def _to_maps(outputs: Mapping[str, Tensor], channels: Mapping[str, int]) -> PolicyMaps:
+    """{primitive: (h, w, K + R) tensor of (K Q channels, rotation channels)} → float32 numpy Q and angle maps;
+    channels: K per primitive (1: the angle decoded from the rotation head; more: the best angle's)."""
+    q, angle, q_bins = {}, {}, {}
     for p, out in outputs.items():
         arr = out.numpy()
-        q[p] = np.ascontiguousarray(arr[..., 0])
-        angle[p] = decode_rotation(arr[..., 1:], p).astype(np.float32, copy=False)
-    return PolicyMaps(q, angle)
+        k = channels[p]
+        if k == 1:
+            q[p] = np.ascontiguousarray(arr[..., 0])
+            angle[p] = decode_rotation(arr[..., 1:], p).astype(np.float32, copy=False)
+        else:
+            q_bins[p] = np.ascontiguousarray(np.moveaxis(arr[..., :k], -1, 0))
+            q[p], angle[p] = best_bin(q_bins[p])
+    return PolicyMaps(q, angle, q_bins)
+
+
+def best_bin(q_bins: np.ndarray, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(q (h, w), angle (h, w)) of a (K, h, w) Q map per closing angle: at each pixel the best of its angles
+    (only the allowed ones, bool (K, h, w); -inf where none is), and that angle k pi / K."""
+    values = q_bins if allowed is None else np.where(allowed, q_bins, np.float32(-np.inf))
+    best = np.argmax(values, axis=0)
+    q = np.take_along_axis(values, best[None], axis=0)[0]
+    return np.ascontiguousarray(q, dtype=np.float32), bin_angles(q_bins.shape[0])[best]
 
 
 def reference_maps(model: RoManNet, color_hm: np.ndarray, depth_hm: np.ndarray,
@@ -264,26 +285,38 @@ def reference_maps(model: RoManNet, color_hm: np.ndarray, depth_hm: np.ndarray,
             outputs = {}
             for p in primitives:
                 q, rot = model.nets[p](x)
-                outputs[p] = torch.cat([q[0, ..., None], rot[0].permute(1, 2, 0)], dim=-1).float().cpu()
+                q = q[0, ..., None] if q.dim() == 3 else q[0].permute(1, 2, 0)
+                outputs[p] = torch.cat([q, rot[0].permute(1, 2, 0)], dim=-1).float().cpu()
     finally:
         model.train(was_training)
-    return _to_maps(outputs)
+    return _to_maps(outputs, {p: q_channels(model.cfg, p) for p in primitives})
 
 
 def with_clearance(avoided: dict[str, np.ndarray] | None, clear_bins: np.ndarray | None,
-                   maps: PolicyMaps) -> tuple[dict[str, np.ndarray] | None, dict[str, np.ndarray]]:
-    """(valid pixels, angle maps) a decision chooses from: the failure memory's pixels (avoided), and on the
-    pick map only the pixels with a clear pick (clear_bins: PickClearance.clear), at the clear angle nearest
-    the net's. A pick map with no clear pixel left keeps the failure memory's pixels and the net's angles."""
+                   maps: PolicyMaps) -> tuple[dict[str, np.ndarray] | None, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """(valid pixels, Q maps, angle maps) a decision chooses from: the failure memory's pixels (avoided), and on
+    the pick map only the pixels with a clear pick (clear_bins: PickClearance.clear). A pick net with one Q per
+    pixel picks at the clear angle nearest its own; one with a Q per closing angle at its best clear angle. A
+    pick map with no clear pixel left keeps the failure memory's pixels and the net's angles."""
     if clear_bins is None or "pick" not in maps.angle:
-        return avoided, maps.angle
-    clear, angles = nearest_clear_angle(maps.angle["pick"], clear_bins)
+        return avoided, maps.q, maps.angle
+    q, angles = maps.q, maps.angle
+    if "pick" in maps.q_bins:
+        bins = maps.q_bins["pick"]
+        if bins.shape[0] != clear_bins.shape[0]:
+            raise ValueError(f"the pick net has {bins.shape[0]} angle bins, the clearance rule {clear_bins.shape[0]}")
+        clear = clear_bins.any(axis=0)
+        best_q, best_angle = best_bin(bins, clear_bins)
+        pick_q, pick_angle = np.where(clear, best_q, maps.q["pick"]), np.where(clear, best_angle, maps.angle["pick"])
+    else:
+        clear, pick_angle = nearest_clear_angle(maps.angle["pick"], clear_bins)
+        pick_q = maps.q["pick"]
     allowed = clear if avoided is None else clear & avoided["pick"]
     if not allowed.any():
-        return avoided, maps.angle
+        return avoided, maps.q, maps.angle
     valid = dict(avoided) if avoided is not None else {p: np.ones(clear.shape, dtype=bool) for p in maps.q}
     valid["pick"] = allowed
-    return valid, {**maps.angle, "pick": angles}
+    return valid, {**q, "pick": pick_q}, {**angles, "pick": pick_angle.astype(np.float32, copy=False)}
 
 
 def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np.ndarray, holding: bool,
@@ -297,7 +330,8 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     `primitives`). avoid: the episode's failures since its last success, whose pixels are not chosen again
     (common/failure_memory.py); the returned maps leave them in, as they are the state's values, not the
     decision's. clearance: picks only where the open fingers and the hand come down to the grasp height, at
-    the clear angle nearest the pick net's own (common/grasp_clearance.py). Returns the Action, or (Action, PolicyMaps) when
+    the clear angle nearest the pick net's own, or its best clear angle where it has a Q per angle
+    (common/grasp_clearance.py). Returns the Action, or (Action, PolicyMaps) when
     return_maps is True.
     """
     nets = nets_to_run(holding, primitives)
@@ -311,8 +345,8 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     def masked(raw: PolicyMaps) -> tuple[PolicyMaps, dict[str, np.ndarray]]:
         """The maps as computed, and the Q maps the decision chooses from (the avoided and unclear pixels sunk)."""
         nonlocal valid, angles
-        valid, angles = with_clearance(avoided, clear_bins, raw)
-        chosen = raw.q if valid is None else {p: masked_q(q, valid[p]) for p, q in raw.q.items()}
+        valid, q, angles = with_clearance(avoided, clear_bins, raw)
+        chosen = q if valid is None else {p: masked_q(m, valid[p]) for p, m in q.items()}
         return raw, chosen
 
     if engine is None:
@@ -324,6 +358,7 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
         if rerun:  # int8 cannot order the best two pixels: the fp32 nets they lie in decide
             engine.exact_reruns += 1
             exact = engine.infer(color_hm, depth_hm, rerun, exact=True)
-            maps, chosen_from = masked(PolicyMaps({**raw.q, **exact.q}, {**raw.angle, **exact.angle}))
+            maps, chosen_from = masked(PolicyMaps({**raw.q, **exact.q}, {**raw.angle, **exact.angle},
+                                                  {**raw.q_bins, **exact.q_bins}))
     action = select_action(chosen_from, angles, explore_rate, exploration_cfg, rng, valid)
     return (action, maps) if return_maps else action

@@ -283,7 +283,8 @@ def _q_map(trainer: Trainer, color_hm: np.ndarray, depth_hm: np.ndarray, primiti
         q, _ = net(preprocess(color_hm, depth_hm).to(trainer.device))
     finally:
         net.train(was_training)
-    return q[0].float().cpu().numpy()
+    q = q[0] if q.dim() == 3 else q[0].amax(dim=0)  # a Q per closing angle: the best angle's
+    return q.float().cpu().numpy()
 
 
 def _maybe_log(next_log_s: float, opts: ServiceOptions, fmt: str, *args: object) -> float:

@@ -5,8 +5,8 @@ One `train_step(batch)`:
    enabled, else the online net's), only for items that bootstrap (R_tp > 0 and not done: eta = 0 or the
    episode's end make V irrelevant, so its forward pass is skipped).
 2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel.
-3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net; the
-   loss (learner/losses.py, whose docstring has the formulas): the Huber loss over each label's support
+3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net (a pick
+   net with a Q per closing angle, model.pick_angle_bins: each item's executed angle's map); the loss (learner/losses.py, whose docstring has the formulas): the Huber loss over each label's support
    + the rotation loss on successes (at the executed pixel, or over the support with learner.rotation_support
    = "kernel") + learner.executed_pixel_weight x the paper's Huber(Q(s_t, a_t) - Y_t) at the executed pixel,
    times the item's importance-sampling weight, averaged over the batch. Only the executed
@@ -45,6 +45,7 @@ from romannet.common.config import ExplorationConfig, ModelConfig, RewardConfig,
 from romannet.common.config_learner import LearnerConfig
 from romannet.common.errors import ConfigError
 from romannet.common.exploration import ExplorationRate
+from romannet.common.grasp_clearance import angle_bin
 from romannet.common.model import RoManNet, preprocess_batch, state_dict_to_tensors
 from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
@@ -228,7 +229,7 @@ class Trainer:
                 x = self._inputs([transitions[i].color_after for i in idx], [transitions[i].depth_after for i in idx])
                 with self._autocast():
                     q, _ = net_model.nets[p](x)
-                best = q.float().amax(dim=(1, 2)).tolist()
+                best = q.float().flatten(1).amax(dim=1).tolist()  # over the angles too (a Q per angle)
                 for i, m in zip(idx, best, strict=True):
                     maxima[i][p] = m
             for i in need:
@@ -326,6 +327,9 @@ class Trainer:
             q, rot = self.model.nets[p](g.x)
         q, rot = q.float(), rot.float()
         ar = torch.arange(len(ts), device=self.device)
+        if q.dim() == 4:  # a Q per closing angle: each item's label trains its executed angle's map
+            bins = angle_bin(np.array([t.action.angle_rad for t in ts]), q.shape[1])
+            q = q[ar, torch.from_numpy(bins).to(self.device)]
         q_exec = q[ar, g.rows, g.cols]
         y = torch.tensor(targets, device=self.device)
         is_w = torch.tensor(is_weights, device=self.device, dtype=torch.float32)

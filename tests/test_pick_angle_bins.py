@@ -1,0 +1,144 @@
+"""model.pick_angle_bins: a pick Q per pixel and closing angle, chosen together, trained at the executed angle."""
+
+from __future__ import annotations
+
+import math
+
+import _learner_helpers as H
+import numpy as np
+import pytest
+import torch
+
+from romannet.common.config import ExplorationConfig, ModelConfig, load_config_text
+from romannet.common.errors import ConfigError
+from romannet.common.grasp_clearance import (
+    GripperFootprint,
+    PickClearance,
+    angle_bin,
+    bin_angles,
+    clear_picks,
+)
+from romannet.common.model import RoManNet, preprocess
+from romannet.common.policy import InferenceEngine, decide, reference_maps
+from romannet.common.scenes import synthetic_scene
+
+BINS = 16
+SMALL_BINS = ModelConfig(channels=8, residual_blocks=1, q_head_init="default", pick_angle_bins=BINS,
+                         precision="fp32")
+RG2 = GripperFootprint(travel_m=0.055, pick_depth_m=0.03, tip_floor_m=0.006)
+
+
+def _scene(seed: int = 0, size: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    return synthetic_scene(np.random.default_rng(seed), size, size)
+
+
+def test_the_pick_net_has_one_q_map_per_closing_angle_and_the_maps_take_the_best() -> None:
+    model = RoManNet(SMALL_BINS, seed=1).eval()
+    color, depth = _scene()
+    with torch.no_grad():
+        q, rot = model.nets["pick"](preprocess(color, depth))
+        push_q, _ = model.nets["push"](preprocess(color, depth))
+    assert q.shape == (1, BINS, 64, 64) and push_q.shape == (1, 64, 64)  # push keeps one Q per pixel
+    maps = reference_maps(model, color, depth, ("push", "pick"))
+    bins = maps.q_bins["pick"]
+    np.testing.assert_allclose(bins, q[0].numpy(), atol=1e-6)
+    np.testing.assert_array_equal(maps.q["pick"], bins.max(axis=0))
+    np.testing.assert_array_equal(maps.angle["pick"], bin_angles(BINS)[bins.argmax(axis=0)])
+    assert "push" not in maps.q_bins
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16", "int8"])
+def test_the_actors_engine_computes_the_same_per_angle_maps(precision: str) -> None:
+    model = RoManNet(SMALL_BINS, seed=2).eval()
+    color, depth = _scene(3)
+    ref = reference_maps(model, color, depth, ("push", "pick"))
+    cfg = ModelConfig(channels=8, residual_blocks=1, q_head_init="default", pick_angle_bins=BINS, precision=precision)
+    engine = InferenceEngine(RoManNet(SMALL_BINS, seed=2), cfg)
+    try:
+        fast = engine.infer(color, depth, ("push", "pick"))
+    finally:
+        engine.close()
+    spread = float(np.ptp(ref.q_bins["pick"]))
+    tolerance = 1e-5 if engine.precision == "fp32" else 0.02 * spread
+    np.testing.assert_allclose(fast.q_bins["pick"], ref.q_bins["pick"], atol=tolerance)
+    np.testing.assert_allclose(fast.q["push"], ref.q["push"], atol=max(tolerance, 1e-5))
+    agree = (fast.angle["pick"] == ref.angle["pick"]).mean()
+    assert agree > (0.999 if engine.precision == "fp32" else 0.9)
+
+
+def test_the_decision_takes_the_best_clear_pixel_and_angle_together() -> None:
+    res = 0.005
+    hm = np.zeros((64, 64), np.float32)
+    hm[28:36, 28:36] = 0.04  # a 4 cm block with a taller neighbour on +x: closing along x is not clear
+    hm[28:36, 44:50] = 0.06
+    color = np.zeros((64, 64, 3), np.uint8)
+    clearance = PickClearance(RG2, res, BINS)
+    clear = clear_picks(hm, res, RG2, BINS)
+    model = RoManNet(SMALL_BINS, seed=0)
+    with torch.no_grad():  # the net's own favourite: closing along x (bin 0), which the neighbour blocks
+        model.nets["pick"].q_head.bias.copy_(torch.linspace(0.0, -1.5, BINS))
+    maps = reference_maps(model, color, hm, ("pick",))
+    greedy = decide(model, color, hm, False, 0.0, np.random.default_rng(0), ("pick",), ExplorationConfig(),
+                    clearance=clearance)
+    k = int(angle_bin(np.array(greedy.angle_rad), BINS))
+    assert clear[k, greedy.row, greedy.col]
+    best = np.where(clear, maps.q_bins["pick"], -np.inf)
+    assert maps.q_bins["pick"][k, greedy.row, greedy.col] == pytest.approx(best.max())
+    assert greedy.angle_rad == pytest.approx(k * math.pi / BINS)
+    assert not clear[0, greedy.row, greedy.col] or k == 0  # bin 0 was the best where it is clear
+    explored = [decide(model, color, hm, False, 1.0, np.random.default_rng(s), ("pick",),
+                       ExplorationConfig(random_angle_prob=0.0), clearance=clearance) for s in range(8)]
+    for a in explored:
+        assert clear[angle_bin(np.array(a.angle_rad), BINS), a.row, a.col], a
+    # Without the rule the argmax is over every angle: the net's favourite angle everywhere.
+    plain = decide(model, color, hm, False, 0.0, np.random.default_rng(0), ("pick",), ExplorationConfig())
+    assert plain.angle_rad == pytest.approx(0.0)
+
+
+def test_a_pick_trains_only_its_executed_angles_map() -> None:
+    t = H.trainer(model=SMALL_BINS)
+    angle = 5 * math.pi / BINS + 0.02
+    t.train_step([(H.transition(primitive="pick", angle_rad=angle, reward=1.0, done=True), 1.0, 0)])
+    grad = t.model.nets["pick"].q_head.weight.grad[:, :, 0, 0]
+    rows = [k for k in range(BINS) if bool(grad[k].abs().sum() > 0)]
+    assert rows == [5]
+
+
+def test_successes_at_one_angle_and_failures_at_another_teach_which_angle_to_pick() -> None:
+    # The recipe's small Q head init: the angles never tried stay near 0, below a learned success.
+    t = H.trainer(model=ModelConfig(channels=8, residual_blocks=1, pick_angle_bins=BINS), lr=0.01)
+    good, bad = 3 * math.pi / BINS, 11 * math.pi / BINS
+    items = [(H.transition(primitive="pick", seed=0, row=10, col=12, angle_rad=good, reward=1.0, done=True), 1.0, 0),
+             (H.transition(primitive="pick", seed=0, row=10, col=12, angle_rad=bad, success=False, reward=0.0,
+                           done=True), 1.0, 1)]
+    for _ in range(40):
+        t.train_step(items)
+    color, depth = items[0][0].color_before, items[0][0].depth_before
+    maps = reference_maps(t.model, color, depth, ("pick",))
+    assert maps.q_bins["pick"][3, 10, 12] > maps.q_bins["pick"][11, 10, 12] + 0.5
+    assert maps.angle["pick"][10, 12] == pytest.approx(good)
+
+
+def test_the_bootstrap_is_the_best_q_over_pixels_and_angles() -> None:
+    t = H.trainer(model=SMALL_BINS, bootstrap_clip=False)
+    with torch.no_grad():
+        t.model.nets["pick"].q_head.bias.copy_(torch.zeros(BINS))
+        t.model.nets["pick"].q_head.bias[7] = 3.0  # one angle's map far above the others
+    tr = H.transition(primitive="push", reward=0.2, done=False, seed=4)
+    v = t.next_state_values([tr])[0]
+    t.model.eval()
+    with torch.no_grad():
+        x = preprocess(tr.color_after, tr.depth_after)
+        expected = max(float(t.model.nets["pick"](x)[0].max()), float(t.model.nets["push"](x)[0].max()))
+    assert v == pytest.approx(expected, rel=1e-5)
+    assert v > 2.0
+
+
+def test_the_config_field_and_the_clearance_bins() -> None:
+    assert ModelConfig().pick_angle_bins == 0  # one Q per pixel, the angle from the rotation head
+    with pytest.raises(ConfigError, match="model.pick_angle_bins"):
+        load_config_text("[model]\npick_angle_bins = 12\n")
+    cfg = load_config_text("[model]\npick_angle_bins = 8\n[exploration]\npick_clearance = true\n")
+    rule = PickClearance.for_config(cfg)
+    assert rule is not None and rule.bins == 8  # judged on the net's own angles
+    assert PickClearance.for_config(load_config_text("[exploration]\npick_clearance = true\n")).bins == 16
