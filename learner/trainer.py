@@ -4,7 +4,9 @@ One `train_step(batch)`:
 1. V(s_{t+1}) by an explicit no-grad forward pass over the nets allowed in s_{t+1} (the target net's when
    enabled, else the online net's), only for items that bootstrap (R_tp > 0 and not done: eta = 0 or the
    episode's end make V irrelevant, so its forward pass is skipped).
-2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel.
+2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel. Each
+   item trains on a window around its executed pixel (learner/crop.py), under one of the square's 8
+   symmetries with learner.augment = "d4" (learner/augment.py).
 3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net (a pick
    net with a Q per closing angle, model.pick_angle_bins: each item's executed angle's map); the loss (learner/losses.py, whose docstring has the formulas): the Huber loss over each label's support
    + the rotation loss on successes (at the executed pixel, or over the support with learner.rotation_support
@@ -50,6 +52,7 @@ from romannet.common.model import RoManNet, preprocess_batch, state_dict_to_tens
 from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 
+from .augment import d4_index, transform_window
 from .crop import crop_origin
 from .losses import (
     executed_pixel_loss,
@@ -92,13 +95,14 @@ class StepStats:
 
 class _GroupInputs(NamedTuple):
     """One primitive's items in their training windows: labels and supports (k, h, w), input x, executed
-    pixels rows, cols (k,)."""
+    pixels rows, cols (k,) and angles (radians), after the window's symmetry where learner.augment is on."""
 
     label: Tensor
     support: Tensor
     x: Tensor
     rows: Tensor
     cols: Tensor
+    angles: list[float]
 
 
 class _GroupLoss(NamedTuple):
@@ -269,7 +273,7 @@ class Trainer:
         q_max: dict[str, float] = {}
         for p, idx in groups.items():
             g = self._group_loss(p, [transitions[i] for i in idx], [v_next[i] for i in idx],
-                                 [targets[i] for i in idx], [items[i][1] for i in idx])
+                                 [targets[i] for i in idx], [items[i][1] for i in idx], [items[i][2] for i in idx])
             total = total + g.objective
             loss_by_primitive[p] = float(np.mean(g.item_losses))
             q_mean[p], q_max[p] = g.q_mean, g.q_max
@@ -296,45 +300,50 @@ class Trainer:
                          q_max=q_max, exploration_loss=exploration_loss, exploration_rate=rate,
                          updates=self.updates, duration_s=time.perf_counter() - start)
 
-    def _group_inputs(self, ts: Sequence[TransitionMsg], v_next: Sequence[float]) -> _GroupInputs:
+    def _group_inputs(self, ts: Sequence[TransitionMsg], v_next: Sequence[float],
+                      item_ids: Sequence[int]) -> _GroupInputs:
         """The nets' input, Q labels and executed pixels of one primitive's items, each in its training window
-        (learner.train_crop_px; the whole heightmap with 0 or a window as large as the image)."""
+        (learner.train_crop_px; the whole heightmap with 0 or a window as large as the image), under the
+        item's symmetry with learner.augment = "d4" (learner/augment.py)."""
         cfg = self.cfg
         h, w = ts[0].shape
         crop = cfg.train_crop_px if 0 < cfg.train_crop_px < min(h, w) else 0
-        labels, supports, colors, depths, rows, cols = [], [], [], [], [], []
-        for t, v in zip(ts, v_next, strict=True):
+        labels, supports, colors, depths, rows, cols, angles = [], [], [], [], [], [], []
+        for t, v, item_id in zip(ts, v_next, item_ids, strict=True):
             a = t.action
             lab, sup = q_label((h, w), a.row, a.col, a.angle_rad, t.reward, v, cfg.gamma, self.reward_cfg)
             r0, c0 = crop_origin((h, w), a.row, a.col, crop) if crop else (0, 0)
             win = (slice(r0, r0 + crop), slice(c0, c0 + crop)) if crop else (slice(None), slice(None))
-            labels.append(lab[win])
-            supports.append(sup[win])
-            colors.append(t.color_before[win])
-            depths.append(t.depth_before[win])
-            rows.append(a.row - r0)
-            cols.append(a.col - c0)
+            images = [lab[win], sup[win], t.color_before[win], t.depth_before[win]]
+            row, col, angle = a.row - r0, a.col - c0, a.angle_rad
+            if cfg.augment == "d4":
+                images, row, col, angle = transform_window(d4_index(item_id, self.updates), images, row, col, angle)
+            for out, im in zip((labels, supports, colors, depths), images, strict=True):
+                out.append(im)
+            rows.append(row)
+            cols.append(col)
+            angles.append(angle)
         return _GroupInputs(torch.from_numpy(np.stack(labels)).to(self.device),
                             torch.from_numpy(np.stack(supports)).to(self.device), self._inputs(colors, depths),
-                            torch.tensor(rows, device=self.device), torch.tensor(cols, device=self.device))
+                            torch.tensor(rows, device=self.device), torch.tensor(cols, device=self.device), angles)
 
     def _group_loss(self, p: str, ts: list[TransitionMsg], v_next: list[float], targets: list[float],
-                    is_weights: list[float]) -> _GroupLoss:
+                    is_weights: list[float], item_ids: list[int]) -> _GroupLoss:
         """The loss of one primitive's items in one forward pass of its net (learner/losses.py)."""
         cfg = self.cfg
-        g = self._group_inputs(ts, v_next)
+        g = self._group_inputs(ts, v_next, item_ids)
         with self._autocast():
             q, rot = self.model.nets[p](g.x)
         q, rot = q.float(), rot.float()
         ar = torch.arange(len(ts), device=self.device)
         if q.dim() == 4:  # a Q per closing angle: each item's label trains its executed angle's map
-            bins = angle_bin(np.array([t.action.angle_rad for t in ts]), q.shape[1])
+            bins = angle_bin(np.array(g.angles), q.shape[1])
             q = q[ar, torch.from_numpy(bins).to(self.device)]
         q_exec = q[ar, g.rows, g.cols]
         y = torch.tensor(targets, device=self.device)
         is_w = torch.tensor(is_weights, device=self.device, dtype=torch.float32)
         q_losses = q_loss(q, g.label, g.support, cfg.huber_delta, cfg.loss_reduction)
-        rho, rho_w = rotation_targets([t.action.angle_rad for t in ts], [t.success for t in ts], p,
+        rho, rho_w = rotation_targets(g.angles, [t.success for t in ts], p,
                                       self.model.cfg.rotation_harmonics)
         rho, rho_w = rho.to(self.device), rho_w.to(self.device)
         rot_losses = (rotation_kernel_loss(rot, rho, rho_w, g.support) if cfg.rotation_support == "kernel"
