@@ -8,6 +8,9 @@
   harmonics2_vs_decision is its ratio to decision_ms.
 * decision_clearance_ms: the same decision with the pick clearance rule (exploration.pick_clearance; the RG2's
   footprint, common/grasp_clearance.py); clearance_vs_decision is its ratio to decision_ms.
+* decision_angle_bins_ms: the decision with the clearance rule and a pick Q per closing angle
+  (model.pick_angle_bins = 16: 16 Q channels from one pass, the best clear angle per pixel);
+  angle_bins_vs_clearance is its ratio to decision_clearance_ms.
 * naive_fp32_all_nets_ms: eager fp32 forward of all three nets (plain nn.Module, NCHW, inference mode).
 * rotations16_ms: the authors' approach — the three nets over 16 rotated 320×320 copies of the padded
   input (affine_grid / grid_sample, nearest, as in their code), outputs rotated back, then an argmax.
@@ -209,6 +212,13 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
     def decision_clearance() -> object:
         return decide(engine, color, depth, False, 0.0, rng, primitives, exploration, clearance=clearance)
 
+    # A pick Q per closing angle (model.pick_angle_bins = 16), with the clearance rule on the same 16 angles.
+    cfg_bins = replace(cfg, pick_angle_bins=16)
+    engine_bins = InferenceEngine(RoManNet(cfg_bins, seed=seed).eval(), cfg_bins)
+
+    def decision_angle_bins() -> object:
+        return decide(engine_bins, color, depth, False, 0.0, rng, primitives, exploration, clearance=clearance)
+
     def decision_exploring() -> object:
         return decide(engine, color, depth, False, 1.0, rng, primitives, exploration)
 
@@ -222,7 +232,8 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
                 net(x)
 
     timed: dict[str, Callable[[], object]] = {"naive": naive, "explore": decision_exploring,
-                                              "harmonics2": decision_by(engine2), "clearance": decision_clearance}
+                                              "harmonics2": decision_by(engine2), "clearance": decision_clearance,
+                                              "angle_bins": decision_angle_bins}
     timed.update((f"decision_{p}", decision_by(e)) for p, e in engines.items() if p not in slow)
     for fn in timed.values():
         fn()  # warm-up
@@ -266,6 +277,8 @@ def run_inference_benchmark(repeats: int = 30, seed: int = 0, agreement_inputs: 
         "harmonics2_vs_decision": round(_summary(samples["harmonics2"])[0] / decision_ms, 3),
         "decision_clearance_ms": _summary(samples["clearance"])[0],
         "clearance_vs_decision": round(_summary(samples["clearance"])[0] / decision_ms, 3),
+        "decision_angle_bins_ms": _summary(samples["angle_bins"])[0],
+        "angle_bins_vs_clearance": round(_summary(samples["angle_bins"])[0] / _summary(samples["clearance"])[0], 3),
         "naive_fp32_all_nets_ms": naive_ms,
         "naive_fp32_all_nets_min_ms": naive_min,
         "rotations16_ms": rotations_ms,

@@ -269,9 +269,8 @@ def best_bin(q_bins: np.ndarray, allowed: np.ndarray | None = None) -> tuple[np.
     """(q (h, w), angle (h, w)) of a (K, h, w) Q map per closing angle: at each pixel the best of its angles
     (only the allowed ones, bool (K, h, w); -inf where none is), and that angle k pi / K."""
     values = q_bins if allowed is None else np.where(allowed, q_bins, np.float32(-np.inf))
-    best = np.argmax(values, axis=0)
-    q = np.take_along_axis(values, best[None], axis=0)[0]
-    return np.ascontiguousarray(q, dtype=np.float32), bin_angles(q_bins.shape[0])[best]
+    # max and argmax apart: numpy's max over the leading axis is vectorised, a gather by the argmax is not
+    return values.max(axis=0).astype(np.float32, copy=False), bin_angles(q_bins.shape[0])[np.argmax(values, axis=0)]
 
 
 def reference_maps(model: RoManNet, color_hm: np.ndarray, depth_hm: np.ndarray,
