@@ -70,9 +70,10 @@ class LearnerConfig:
     # heightmap (learner/crop.py): 128 holds the label's support with the nets' receptive field around it, so
     # the losses equal the whole image's, at a third of the cost at 224 px. 0 = the whole heightmap.
     train_crop_px: int = 128
-    # Train each item's window under one of the 8 symmetries of the square (transposes and mirrors, the action's
-    # pixel and angle moved with it; learner/augment.py): "d4", as BulletArm augments; "none" as trained so far.
-    augment: Literal["none", "d4"] = "none"
+    # "rotate": train each item on a window centred on its executed pixel, turned by a multiple of pi / 16 and
+    # mirrored or not, the action's angle moved with it (learner/augment.py), so a net with a Q per closing
+    # angle learns every angle from every pick, as VPG's rotated inputs do; "none": as trained so far.
+    augment: Literal["none", "rotate"] = "none"
     # CPU numerics. "bf16": autocast to bfloat16 for the convolutions (fp32 master weights and loss); it pays
     # only where the CPU computes bf16 natively (AMX / AVX512-BF16), elsewhere it is emulated and several
     # times slower than fp32. "auto": bf16 on such CPUs (and on CUDA), fp32 elsewhere.
@@ -128,8 +129,8 @@ class LearnerConfig:
                 "learner.train_crop_px", self.train_crop_px,
                 "must be 0 (the whole heightmap) or a multiple of 4 from 32 (the nets' stride; 128 holds their "
                 "receptive field around the label)")
-        require(self.augment in ("none", "d4"), "learner.augment", self.augment,
-                "must be 'none' or 'd4' (each window under one of the square's 8 symmetries)")
+        require(self.augment in ("none", "rotate"), "learner.augment", self.augment,
+                "must be 'none' or 'rotate' (each window turned by a multiple of pi / 16 and mirrored or not)")
         require(0 <= self.num_threads <= 1024, "learner.num_threads", self.num_threads,
                 "must be 0..1024 (0 = torch's default)")
         require(0 <= self.seed < 2**63, "learner.seed", self.seed, "must be a non-negative integer")

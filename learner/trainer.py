@@ -5,8 +5,8 @@ One `train_step(batch)`:
    enabled, else the online net's), only for items that bootstrap (R_tp > 0 and not done: eta = 0 or the
    episode's end make V irrelevant, so its forward pass is skipped).
 2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel. Each
-   item trains on a window around its executed pixel (learner/crop.py), under one of the square's 8
-   symmetries with learner.augment = "d4" (learner/augment.py).
+   item trains on a window around its executed pixel (learner/crop.py), turned by a multiple of pi / 16
+   and mirrored or not with learner.augment = "rotate" (learner/augment.py).
 3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net (a pick
    net with a Q per closing angle, model.pick_angle_bins: each item's executed angle's map); the loss (learner/losses.py, whose docstring has the formulas): the Huber loss over each label's support
    + the rotation loss on successes (at the executed pixel, or over the support with learner.rotation_support
@@ -52,7 +52,7 @@ from romannet.common.model import RoManNet, preprocess_batch, state_dict_to_tens
 from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 
-from .augment import d4_index, transform_window
+from .augment import moved_window, symmetry_index, window_size
 from .crop import crop_origin
 from .losses import (
     executed_pixel_loss,
@@ -303,8 +303,9 @@ class Trainer:
     def _group_inputs(self, ts: Sequence[TransitionMsg], v_next: Sequence[float],
                       item_ids: Sequence[int]) -> _GroupInputs:
         """The nets' input, Q labels and executed pixels of one primitive's items, each in its training window
-        (learner.train_crop_px; the whole heightmap with 0 or a window as large as the image), under the
-        item's symmetry with learner.augment = "d4" (learner/augment.py)."""
+        (learner.train_crop_px; the whole heightmap with 0 or a window as large as the image); with
+        learner.augment = "rotate" the window is centred on the executed pixel, turned and mirrored by the
+        item's symmetry (learner/augment.py)."""
         cfg = self.cfg
         h, w = ts[0].shape
         crop = cfg.train_crop_px if 0 < cfg.train_crop_px < min(h, w) else 0
@@ -312,12 +313,15 @@ class Trainer:
         for t, v, item_id in zip(ts, v_next, item_ids, strict=True):
             a = t.action
             lab, sup = q_label((h, w), a.row, a.col, a.angle_rad, t.reward, v, cfg.gamma, self.reward_cfg)
-            r0, c0 = crop_origin((h, w), a.row, a.col, crop) if crop else (0, 0)
-            win = (slice(r0, r0 + crop), slice(c0, c0 + crop)) if crop else (slice(None), slice(None))
-            images = [lab[win], sup[win], t.color_before[win], t.depth_before[win]]
-            row, col, angle = a.row - r0, a.col - c0, a.angle_rad
-            if cfg.augment == "d4":
-                images, row, col, angle = transform_window(d4_index(item_id, self.updates), images, row, col, angle)
+            if cfg.augment == "rotate":
+                k, mirrored = symmetry_index(item_id, self.updates)
+                images, row, col, angle = moved_window(lab, sup, t.color_before, t.depth_before, a.row, a.col,
+                                                       a.angle_rad, k, mirrored, window_size((h, w), crop))
+            else:
+                r0, c0 = crop_origin((h, w), a.row, a.col, crop) if crop else (0, 0)
+                win = (slice(r0, r0 + crop), slice(c0, c0 + crop)) if crop else (slice(None), slice(None))
+                images = [lab[win], sup[win], t.color_before[win], t.depth_before[win]]
+                row, col, angle = a.row - r0, a.col - c0, a.angle_rad
             for out, im in zip((labels, supports, colors, depths), images, strict=True):
                 out.append(im)
             rows.append(row)

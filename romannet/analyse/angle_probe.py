@@ -1,5 +1,8 @@
 """What a checkpoint's pick rotation head says about cubes: its angle at every lone cube, and at its trained picks.
 
+With a Q per closing angle (model.pick_angle_bins) "the head's angle" is the angle of the net's highest Q at
+the pixel (every angle taken as clear).
+
     romannet analyse angle-probe runs/stack-h4 [--checkpoint DIR] [--episodes 12] [--json]
 
 Two questions about the head that chooses a pick's angle, asked of recorded scenes, not of the policy's choices:
@@ -28,6 +31,7 @@ import torch
 
 from romannet.common.config import load_saved_config
 from romannet.common.episode_file import episode_paths
+from romannet.common.grasp_clearance import bin_angles
 from romannet.common.model import RoManNet, decode_rotation, load_tensors, preprocess
 from romannet.common.wire_messages import TransitionMsg
 from romannet.learner.checkpoint import latest_checkpoint
@@ -56,10 +60,13 @@ def lone_cube_centres(depth_hm: np.ndarray, resolution_m: float, cube_m: float,
 
 
 def pick_angle_map(model: RoManNet, t: TransitionMsg) -> np.ndarray:
-    """The pick net's decoded angle (radians) at every pixel of the state before t."""
+    """The pick net's angle (radians) at every pixel of the state before t: its rotation head's, decoded, or
+    with a Q per closing angle (model.pick_angle_bins) the angle of its highest Q there."""
     with torch.no_grad():
-        rot = model.nets["pick"](preprocess(t.color_before, t.depth_before))[1][0]
-    return decode_rotation(rot.permute(1, 2, 0).numpy(), "pick")
+        q, rot = model.nets["pick"](preprocess(t.color_before, t.depth_before))
+    if q.dim() == 4:
+        return bin_angles(q.shape[1])[q[0].argmax(dim=0).numpy()]
+    return decode_rotation(rot[0].permute(1, 2, 0).numpy(), "pick")
 
 
 def _angles_summary(deg: list[float], within: str, beyond: str) -> dict:
