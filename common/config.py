@@ -165,9 +165,10 @@ class ModelConfig:
     q_head_init: Literal["default", "small"] = "small"
     # The pick net's Q per closing angle: 0 = one Q per pixel, the angle read from the rotation head (trained by
     # regression toward successful angles only, it never learns which angles fail: at lone cubes the clutter
-    # recipe's head points anywhere between square and diagonal, docs/journal.md); K = a Q per pixel and per
-    # closing angle k pi / K, as VPG's and the paper's code have per input rotation, from K output channels of
-    # one pass. The argmax takes pixel and angle together (with the pick clearance rule, among the clear ones).
+    # recipe's head points anywhere between square and diagonal, docs/journal.md); K = a Q per pixel at each
+    # closing angle k pi / K, as VPG's and the paper's code have per input rotation, from one pass: two
+    # harmonics of the angle per pixel (common/model.py), so every pick trains every angle. The argmax takes
+    # pixel and angle together (with the pick clearance rule, among the clear ones).
     pick_angle_bins: int = 0
     # Inference numerics: "auto" picks bf16 where the CPU computes it natively, else fp32; "int8": the trunk in
     # int8 (common/int8net.py, near ties rerun in fp32).

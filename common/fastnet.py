@@ -112,11 +112,15 @@ class FastNet:
             self.up = [_Layer(*_fold(net.deconv1, net.bn4, True, dtype), dtype, 2, 1, True, fused),
                        _Layer(*_fold(net.deconv2, net.bn5, True, dtype), dtype, 2, 1, True, fused)]
             self.conv6 = _Layer(net.conv6.weight, net.conv6.bias, dtype, 1, 4, False, fused)
-            heads_w = torch.cat([net.q_head.weight, net.rot_head.weight], 0)[:, :, 0, 0]
+            q_w, q_b = net.q_head.weight[:, :, 0, 0].double(), net.q_head.bias.double()
+            if net.q_basis is not None:  # a Q per closing angle: the fixed harmonic basis folded in
+                basis = net.q_basis.double()
+                q_w, q_b = basis @ q_w, basis @ q_b
+            heads_w = torch.cat([q_w.float(), net.rot_head.weight[:, :, 0, 0]], 0)
             self.heads_w = heads_w.detach().float().t().contiguous()  # (C, Q + rotation channels)
-            self.heads_b = torch.cat([net.q_head.bias, net.rot_head.bias]).detach().float()
+            self.heads_b = torch.cat([q_b.float(), net.rot_head.bias]).detach().float()
             self.outputs = int(self.heads_b.numel())
-            self.q_channels = int(net.q_head.out_channels)
+            self.q_channels = int(q_w.shape[0])
 
     def __call__(self, x: Tensor) -> Tensor:
         return self.tail(self.trunk(x))

@@ -40,7 +40,8 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 DEPTH_OFFSET_M = 0.01  # depth channel = (d − offset) / scale, VPG's normalisation of the height map
 DEPTH_SCALE_M = 0.03
 SYMMETRIC_PRIMITIVES = frozenset({"pick", "place"})
-Q_HEAD_SCALES = {"default": 1.0, "small": 0.01}  # model.q_head_init: the Q head's initial weights times this
+Q_HEAD_SCALES = {"default": 1.0, "small": 0.01}
+ANGLE_HARMONICS = 2  # harmonics of the closing angle in a per-angle Q (GRConvNet)  # model.q_head_init: the Q head's initial weights times this
 
 
 class ResidualBlock(nn.Module):
@@ -59,11 +60,18 @@ class ResidualBlock(nn.Module):
 
 
 class GRConvNet(nn.Module):
-    """One primitive's net: (B, 4, h, w) → (q, rotation (B, 2 * harmonics, h, w): cos, sin, ...), q (B, h, w)
-    with one Q channel, (B, K, h, w) with K (a Q per closing angle k pi / K, model.pick_angle_bins)."""
+    """One primitive's net: (B, 4, h, w) → (q, rotation (B, 2 * harmonics, h, w): cos, sin, ...); q is (B, h, w),
+    or (B, K, h, w) with angle_bins K: a Q per closing angle k pi / K (model.pick_angle_bins).
+
+    A Q per closing angle is a few harmonics of the angle at each pixel, Q(p, a) = c0(p) + sum over h = 1, 2 of
+    c_h(p) cos 2ha + s_h(p) sin 2ha (ANGLE_HARMONICS), evaluated at the K angles by a fixed matrix: every pick,
+    at whatever angle and whether it succeeded or failed, trains the pixel's value and its angle preference
+    together. (K free maps, one per angle, each learn only from the picks at their angle: the greedy policy kept
+    the first angle that succeeded, docs/journal.md.) The second harmonic (4a) holds a cube's quarter-turn
+    symmetry, the first (2a) an oblong object's one preferred axis."""
 
     def __init__(self, channels: int = 32, residual_blocks: int = 5, in_channels: int = 4,
-                 rotation_harmonics: int = 1, q_head_scale: float = 1.0, q_channels: int = 1):
+                 rotation_harmonics: int = 1, q_head_scale: float = 1.0, angle_bins: int = 0):
         super().__init__()
         c = channels
         self.conv1 = nn.Conv2d(in_channels, c, 9, padding=4)
@@ -79,7 +87,9 @@ class GRConvNet(nn.Module):
         self.deconv2 = nn.ConvTranspose2d(2 * c, c, 4, stride=2, padding=1)
         self.bn5 = nn.BatchNorm2d(c)
         self.conv6 = nn.Conv2d(c, c, 9, padding=4)
-        self.q_head = nn.Conv2d(c, q_channels, 1)
+        self.q_head = nn.Conv2d(c, 1 + 2 * ANGLE_HARMONICS if angle_bins else 1, 1)
+        # (K, 1 + 2H): the per-angle Q from the harmonic channels; a buffer outside the state_dict (fixed).
+        self.register_buffer("q_basis", angle_basis(angle_bins) if angle_bins else None, persistent=False)
         self.rot_head = nn.Conv2d(c, 2 * rotation_harmonics, 1)
         if q_head_scale != 1.0:  # model.q_head_init = "small": every Q map starts within a few hundredths of 0
             with torch.no_grad():
@@ -98,7 +108,11 @@ class GRConvNet(nn.Module):
         x = torch.relu(self.bn5(self.deconv2(x)))
         x = self.conv6(x)
         q = self.q_head(x)
-        return (q[:, 0] if q.shape[1] == 1 else q), self.rot_head(x)
+        if self.q_basis is None:
+            return q[:, 0], self.rot_head(x)
+        with torch.autocast(x.device.type, enabled=False):  # fp32, as the heads (learner/trainer.py)
+            q = torch.einsum("kj,bjhw->bkhw", self.q_basis, q.float())
+        return q, self.rot_head(x)
 
 
 class RoManNet(nn.Module):
@@ -113,7 +127,7 @@ class RoManNet(nn.Module):
             torch.manual_seed(seed)
             self.nets = nn.ModuleDict({
                 p: GRConvNet(cfg.channels, cfg.residual_blocks, rotation_harmonics=cfg.rotation_harmonics,
-                             q_head_scale=Q_HEAD_SCALES[cfg.q_head_init], q_channels=q_channels(cfg, p))
+                             q_head_scale=Q_HEAD_SCALES[cfg.q_head_init], angle_bins=angle_bins(cfg, p))
                 for p in PRIMITIVES
             })
 
@@ -121,9 +135,25 @@ class RoManNet(nn.Module):
         return self.nets[primitive](x)
 
 
+def angle_bins(cfg: ModelConfig, primitive: str) -> int:
+    """Closing angles a primitive's net has a Q for: model.pick_angle_bins for pick, else 0 (one Q per pixel)."""
+    return cfg.pick_angle_bins if primitive == "pick" else 0
+
+
 def q_channels(cfg: ModelConfig, primitive: str) -> int:
-    """Q channels of a primitive's net: model.pick_angle_bins for pick when set (a Q per closing angle), else 1."""
-    return cfg.pick_angle_bins if primitive == "pick" and cfg.pick_angle_bins > 0 else 1
+    """Q maps a primitive's net outputs: one per closing angle (angle_bins), else 1."""
+    return angle_bins(cfg, primitive) or 1
+
+
+def angle_basis(bins: int) -> Tensor:
+    """(bins, 1 + 2 * ANGLE_HARMONICS) float32: row k = (1, cos 2a, sin 2a, cos 4a, sin 4a, ...) / sqrt(1 + H) at
+    a = k pi / bins. Rows of unit length: a gradient on one angle's Q moves the head's weights as much as a
+    single Q map's would (unscaled, three times as much, and the learner's rates diverged)."""
+    a = torch.arange(bins, dtype=torch.float64) * (math.pi / bins)
+    cols = [torch.ones_like(a)]
+    for h in range(1, ANGLE_HARMONICS + 1):
+        cols += [torch.cos(2 * h * a), torch.sin(2 * h * a)]
+    return (torch.stack(cols, dim=1) / math.sqrt(1 + ANGLE_HARMONICS)).float()
 
 
 def parameter_count(net: nn.Module) -> int:
