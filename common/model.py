@@ -40,8 +40,8 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 DEPTH_OFFSET_M = 0.01  # depth channel = (d − offset) / scale, VPG's normalisation of the height map
 DEPTH_SCALE_M = 0.03
 SYMMETRIC_PRIMITIVES = frozenset({"pick", "place"})
-Q_HEAD_SCALES = {"default": 1.0, "small": 0.01}
-ANGLE_HARMONICS = 2  # harmonics of the closing angle in a per-angle Q (GRConvNet)  # model.q_head_init: the Q head's initial weights times this
+Q_HEAD_SCALES = {"default": 1.0, "small": 0.01}  # model.q_head_init: the Q head's initial weights times this
+ANGLE_HARMONICS = 2  # harmonics of the closing angle in a per-angle Q (GRConvNet)
 
 
 class ResidualBlock(nn.Module):

@@ -291,8 +291,11 @@ def reference_maps(model: RoManNet, color_hm: np.ndarray, depth_hm: np.ndarray,
     return _to_maps(outputs, {p: q_channels(model.cfg, p) for p in primitives})
 
 
-def with_clearance(avoided: dict[str, np.ndarray] | None, clear_bins: np.ndarray | None,
-                   maps: PolicyMaps) -> tuple[dict[str, np.ndarray] | None, dict[str, np.ndarray], dict[str, np.ndarray]]:
+Maps = dict[str, np.ndarray]
+
+
+def with_clearance(avoided: Maps | None, clear_bins: np.ndarray | None,
+                   maps: PolicyMaps) -> tuple[Maps | None, Maps, Maps]:
     """(valid pixels, Q maps, angle maps) a decision chooses from: the failure memory's pixels (avoided), and on
     the pick map only the pixels with a clear pick (clear_bins: PickClearance.clear). A pick net with one Q per
     pixel picks at the clear angle nearest its own; one with a Q per closing angle at its best clear angle. A

@@ -8,7 +8,8 @@ One `train_step(batch)`:
    item trains on a window around its executed pixel (learner/crop.py), turned by a multiple of pi / 16
    and mirrored or not with learner.augment = "rotate" (learner/augment.py).
 3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net (a pick
-   net with a Q per closing angle, model.pick_angle_bins: each item's executed angle's map); the loss (learner/losses.py, whose docstring has the formulas): the Huber loss over each label's support
+   net with a Q per closing angle, model.pick_angle_bins: each item's executed angle's map); the loss
+   (learner/losses.py, whose docstring has the formulas): the Huber loss over each label's support
    + the rotation loss on successes (at the executed pixel, or over the support with learner.rotation_support
    = "kernel") + learner.executed_pixel_weight x the paper's Huber(Q(s_t, a_t) - Y_t) at the executed pixel,
    times the item's importance-sampling weight, averaged over the batch. Only the executed

@@ -78,7 +78,8 @@ def test_the_decision_takes_the_best_clear_pixel_and_angle_together() -> None:
     clearance = PickClearance(RG2, res, BINS)
     clear = clear_picks(hm, res, RG2, BINS)
     model = RoManNet(SMALL_BINS, seed=0)
-    with torch.no_grad():  # the net's own favourite: closing along x (bin 0: Q + 1.5 cos 2a), which the neighbour blocks
+    # The net's own favourite: closing along x (bin 0: a bias of 1.5 on cos 2a), which the neighbour blocks.
+    with torch.no_grad():
         model.nets["pick"].q_head.bias.copy_(torch.tensor([0.0, 1.5, 0.0, 0.0, 0.0]))
     maps = reference_maps(model, color, hm, ("pick",))
     greedy = decide(model, color, hm, False, 0.0, np.random.default_rng(0), ("pick",), ExplorationConfig(),
