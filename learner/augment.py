@@ -37,6 +37,7 @@ def symmetry_index(item_id: int, update: int) -> tuple[int, bool]:
 
 
 def turn_rad(k: int) -> float:
+    """A turn of k steps of pi / 16, in radians."""
     return k * math.pi / (TURNS // 2)
 
 
@@ -74,7 +75,9 @@ def moved_window(label: np.ndarray, support: np.ndarray, color: np.ndarray, dept
     (row, col) of the whole heightmaps, turned by k pi / 16 and mirrored or not, with the executed pixel and
     angle in it. Outside the heightmap: zero label, no support, the table (depth 0) in its median colour."""
     affine = window_affine(row, col, k, size)
-    table = tuple(float(v) for v in np.median(color.reshape(-1, color.shape[-1]), axis=0))
+    # The table's colour: the median of every 8th pixel each way (the table fills most of the workspace), cheap
+    # enough for each item of each training step.
+    table = tuple(float(v) for v in np.median(color[::8, ::8].reshape(-1, color.shape[-1]), axis=0))
     out = [_warp(label, affine, size, 0.0), _warp(support, affine, size, 0.0), _warp(color, affine, size, table),
            _warp(depth, affine, size, 0.0)]
     r, c = size // 2, size // 2
