@@ -261,6 +261,10 @@ class ExplorationConfig:
     # (common/grasp_clearance.py): a finger landing on a neighbour was most failed clutter picks, and the rule
     # raised the clutter recipe's pick success at 30 blocks from 63.9 % to 81.9 % over 3 seeds (docs/results.md).
     pick_clearance: bool = True
+    # The chosen pick's closing angle (with pick_clearance): "net", the clear angle nearest the pick net's own;
+    # "narrowest", the clear angle across which the material under the pick is narrowest (square to a block's
+    # faces; the net's angle head does not learn them, and diagonal grasps of a block fail twice as often).
+    pick_angle: Literal["net", "narrowest"] = "net"
     epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
     epsilon_decay: float = 0.9998
     epsilon_min: float = 0.1
@@ -279,6 +283,8 @@ class ExplorationConfig:
                 "must be in [0, 1]")
         require(0 <= self.failure_memory_px <= 200, "exploration.failure_memory_px", self.failure_memory_px,
                 "must be 0..200 px")
+        require(self.pick_angle in ("net", "narrowest"), "exploration.pick_angle", self.pick_angle,
+                "must be 'net' or 'narrowest'")
         require(0.0 <= self.epsilon_min <= self.epsilon_start <= 1.0, "exploration.epsilon_start",
                 self.epsilon_start, "must satisfy 0 <= epsilon_min <= epsilon_start <= 1")
         require(0.0 < self.epsilon_decay <= 1.0, "exploration.epsilon_decay", self.epsilon_decay,
@@ -310,6 +316,8 @@ class Config:
                 self.run_id, "must be non-empty and use only letters, digits, '-' and '_' (it is a Zenoh key chunk)")
         require(0 <= self.seed < 2**63, "seed", self.seed, "must be a non-negative integer")
         check_pacing(self.replay, self.learner)
+        require(self.exploration.pick_angle == "net" or not self.model.pick_angle_bins, "exploration.pick_angle",
+                self.exploration.pick_angle, "must be 'net' when model.pick_angle_bins is set (the angle is the Q's)")
 
 
 def without_retired(sections: dict[str, Any]) -> dict[str, Any]:

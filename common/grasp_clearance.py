@@ -7,7 +7,8 @@ clear when nothing under either open finger, nor under the hand less the hand's 
 is higher than the fingers' grasp height at p, and p itself holds material at the pads' height.
 `clear_picks` evaluates it for every pixel on `bins` closing angles over half a turn (the hand is
 symmetric); a decision then picks only at pixels with a clear angle, at the clear angle nearest the pick
-net's own (`nearest_clear_angle`).
+net's own (`nearest_clear_angle`), or (exploration.pick_angle = "narrowest") at the clear angle across which
+the material between the fingers is narrowest (`narrowest_clear_bin`: square to a block's faces).
 
 Heights are metres above the table (the depth heightmap's values); angles as in common.action: from the x
 (column) axis toward the y (row) axis, the finger-closing axis.
@@ -172,6 +173,63 @@ def nearest_clear_angle(angle_map: np.ndarray, clear: np.ndarray) -> tuple[np.nd
     return valid, angles.astype(np.float32, copy=False)
 
 
+def squeezed_material(depth_hm: np.ndarray, g: GripperFootprint, row: int, col: int,
+                      radius_px: int) -> np.ndarray | None:
+    """(n, 2) float64 (column, row) offsets from (row, col) of the pixels the finger pads would squeeze: the
+    material at the pads' height over the pick's grasp height connected to the pick's pixel, within radius_px;
+    None where the pick's pixel holds none."""
+    h, w = depth_hm.shape
+    r0, r1, c0, c1 = max(row - radius_px, 0), min(row + radius_px + 1, h), max(col - radius_px, 0), min(col + radius_px + 1, w)
+    solid = depth_hm[r0:r1, c0:c1] >= g.grasp_height(depth_hm[row, col]) + max(PAD_HEIGHTS_M)
+    if not solid[row - r0, col - c0]:
+        return None
+    _, labels = cv2.connectedComponents(solid.astype(np.uint8), connectivity=4)
+    rows, cols = np.nonzero(labels == labels[row - r0, col - c0])
+    return np.stack([cols + c0 - col, rows + r0 - row], axis=1).astype(np.float64)
+
+
+def closing_width(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, xy_px: tuple[float, float],
+                  angle_rad: float) -> float:
+    """How far apart the fingers close along angle_rad on a pick over xy_px (column, row; pixel units): the
+    extent along the closing axis of the squeezed material (squeezed_material) within the pads' width of the
+    closing line (m); inf where it reaches an open finger (it does not fit) or the pick's pixel holds none."""
+    reach = g.travel_m / resolution_m
+    pts = squeezed_material(np.asarray(depth_hm, dtype=np.float32), g, int(xy_px[1]), int(xy_px[0]),
+                            int(math.ceil(reach)) + 1)
+    return math.inf if pts is None else _band_extent(pts, angle_rad, g.finger_half_width_m / resolution_m, reach) * resolution_m
+
+
+def _band_extent(pts: np.ndarray, angle_rad: float, half_width_px: float, reach_px: float) -> float:
+    """Extent (px) along angle_rad of the points within half_width_px of the line through the origin; inf where
+    one lies beyond reach_px along it."""
+    along = pts @ np.array([math.cos(angle_rad), math.sin(angle_rad)])
+    across = pts @ np.array([-math.sin(angle_rad), math.cos(angle_rad)])
+    along = along[np.abs(across) <= half_width_px]
+    if np.abs(along).max() >= reach_px:
+        return math.inf
+    return float(along.max() - along.min() + 1.0)
+
+
+def narrowest_clear_bin(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, clear: np.ndarray,
+                        row: int, col: int, own_angle: float) -> int | None:
+    """Of the clear closing angles at (row, col) (clear: bool (bins, h, w)), the one the fingers close narrowest
+    along (closing_width; of those within a pixel of it, the one nearest own_angle: a round object has no narrow
+    side); None where no angle is clear or nothing fits between the fingers."""
+    bins = clear.shape[0]
+    candidates = np.flatnonzero(clear[:, row, col])
+    reach = g.travel_m / resolution_m
+    pts = squeezed_material(np.asarray(depth_hm, dtype=np.float32), g, row, col, int(math.ceil(reach)) + 1)
+    if not candidates.size or pts is None:
+        return None
+    widths = np.array([_band_extent(pts, k * math.pi / bins, g.finger_half_width_m / resolution_m, reach)
+                       for k in candidates])
+    if not np.isfinite(widths).any():
+        return None
+    near = candidates[widths <= widths.min() + 1.0]
+    gap = np.abs(np.mod(own_angle - near * (math.pi / bins) + math.pi / 2, math.pi) - math.pi / 2)
+    return int(near[np.argmin(gap)])
+
+
 @dataclass(frozen=True)
 class PickClearance:
     """The decision's clearance rule: which pick pixels are valid on a heightmap (decide(..., clearance=))."""
@@ -179,6 +237,7 @@ class PickClearance:
     footprint: GripperFootprint
     resolution_m: float
     bins: int = DEFAULT_BINS
+    narrowest: bool = False  # exploration.pick_angle == "narrowest": the chosen pick closes across its narrowest side
 
     @classmethod
     def for_config(cls, cfg: Config) -> PickClearance | None:
@@ -190,9 +249,21 @@ class PickClearance:
         sim = cfg.sim
         footprint = GripperFootprint(travel_m=sim.finger_travel_m, pick_depth_m=sim.pick_depth_m,
                                      tip_floor_m=sim.fingertip_clearance_m)
-        return cls(footprint, cfg.workspace.resolution_m, cfg.model.pick_angle_bins or DEFAULT_BINS)
+        return cls(footprint, cfg.workspace.resolution_m, cfg.model.pick_angle_bins or DEFAULT_BINS,
+                   cfg.exploration.pick_angle == "narrowest")
 
     def clear(self, depth_hm: np.ndarray) -> np.ndarray:
         """bool (bins, h, w): clear_picks on this heightmap (it depends on the heightmap alone, so a decision
         computes it once however many times its nets run)."""
         return clear_picks(np.asarray(depth_hm, dtype=np.float32), self.resolution_m, self.footprint, self.bins)
+
+    def closing_angle(self, depth_hm: np.ndarray, clear: np.ndarray, row: int, col: int, angle_rad: float) -> float:
+        """The closing angle a pick at (row, col) chosen at angle_rad executes: with `narrowest`, the clear angle
+        across which the squeezed material is narrowest (narrowest_clear_bin), else (or where none fits)
+        angle_rad."""
+        if not self.narrowest:
+            return angle_rad
+        k = narrowest_clear_bin(np.asarray(depth_hm, dtype=np.float32), self.resolution_m, self.footprint, clear,
+                                row, col, angle_rad)
+        return angle_rad if k is None else k * math.pi / self.bins
+

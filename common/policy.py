@@ -10,6 +10,7 @@ Selection (argmax, or exploration over candidates) lives in `exploration.select_
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from collections.abc import Mapping, Sequence
@@ -332,8 +333,8 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     `primitives`). avoid: the episode's failures since its last success, whose pixels are not chosen again
     (common/failure_memory.py); the returned maps leave them in, as they are the state's values, not the
     decision's. clearance: picks only where the open fingers and the hand come down to the grasp height, at
-    the clear angle nearest the pick net's own, or its best clear angle where it has a Q per angle
-    (common/grasp_clearance.py). Returns the Action, or (Action, PolicyMaps) when
+    the clear angle nearest the pick net's own, or its best clear angle where it has a Q per angle, or (the
+    rule's `narrowest`) across the narrowest side of what it squeezes (common/grasp_clearance.py). Returns the Action, or (Action, PolicyMaps) when
     return_maps is True.
     """
     nets = nets_to_run(holding, primitives)
@@ -363,4 +364,7 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
             maps, chosen_from = masked(PolicyMaps({**raw.q, **exact.q}, {**raw.angle, **exact.angle},
                                                   {**raw.q_bins, **exact.q_bins}))
     action = select_action(chosen_from, angles, explore_rate, exploration_cfg, rng, valid)
+    if clear_bins is not None and action.primitive == "pick" and clearance.narrowest:
+        angle = clearance.closing_angle(depth_hm, clear_bins, action.row, action.col, action.angle_rad)
+        action = dataclasses.replace(action, angle_rad=angle)
     return (action, maps) if return_maps else action

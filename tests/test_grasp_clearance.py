@@ -11,14 +11,16 @@ import pytest
 from _learner_helpers import SMALL_MODEL
 
 from romannet.actor.main import for_robot
-from romannet.common.config import ExplorationConfig, load_config, load_config_text
+from romannet.common.config import ConfigError, ExplorationConfig, load_config, load_config_text
 from romannet.common.grasp_clearance import (
     GripperFootprint,
     PickClearance,
     angle_bin,
     clear_picks,
+    closing_width,
     footprint_height,
     landing_heights,
+    narrowest_clear_bin,
     nearest_clear_angle,
 )
 from romannet.common.model import RoManNet
@@ -130,3 +132,82 @@ def test_a_real_robot_actor_runs_without_the_rule_and_says_so(caplog) -> None:
         real = for_robot(cfg, "ur")
     assert not real.exploration.pick_clearance and "pick_clearance is off on a real robot" in caplog.text
     assert for_robot(cfg, "sim") is cfg
+
+
+def _turned_block(size_px: int, half_m: tuple[float, float], top_m: float, yaw_rad: float) -> np.ndarray:
+    """A heightmap of one block at the map's centre, its sides turned yaw_rad from the map's axes."""
+    idx = (np.arange(size_px) + 0.5) * RES - size_px * RES / 2
+    y, x = np.meshgrid(idx, idx, indexing="ij")
+    u = x * math.cos(yaw_rad) + y * math.sin(yaw_rad)
+    v = -x * math.sin(yaw_rad) + y * math.cos(yaw_rad)
+    return np.where((np.abs(u) <= half_m[0]) & (np.abs(v) <= half_m[1]), top_m, 0.0).astype(np.float32)
+
+
+def test_the_closing_width_is_a_blocks_side_when_square_and_its_diagonal_across_corners() -> None:
+    yaw = math.radians(20.0)
+    hm = _turned_block(224, (0.025, 0.025), 0.05, yaw)
+    centre = (111, 111)
+    assert closing_width(hm, RES, RG2, centre, yaw) == pytest.approx(0.05, abs=2 * RES)
+    assert closing_width(hm, RES, RG2, centre, yaw + math.pi / 2) == pytest.approx(0.05, abs=2 * RES)
+    assert closing_width(hm, RES, RG2, centre, yaw + math.pi / 4) == pytest.approx(0.05 * math.sqrt(2), abs=2 * RES)
+    assert closing_width(hm, RES, RG2, (20, 20), yaw) == math.inf  # the table: nothing to squeeze
+    wide = _turned_block(224, (0.07, 0.07), 0.05, 0.0)  # 14 cm: wider than the RG2's 11 cm opening
+    assert closing_width(wide, RES, RG2, centre, 0.0) == math.inf
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 20.0, 33.0, 71.0])
+def test_the_narrowest_clear_angle_closes_square_to_a_blocks_faces(yaw_deg: float) -> None:
+    yaw = math.radians(yaw_deg)
+    hm = _turned_block(224, (0.025, 0.04), 0.05, yaw)  # 5 x 8 cm: the narrow side along yaw
+    clear = clear_picks(hm, RES, RG2, BINS)
+    k = narrowest_clear_bin(hm, RES, RG2, clear, 112, 112, yaw + math.pi / 2)  # the net says: the wide side
+    assert k is not None and clear[k, 112, 112]
+    off = abs((k * math.pi / BINS - yaw + math.pi / 2) % math.pi - math.pi / 2)
+    assert off < math.pi / BINS  # one of the two bins either side of the narrow side's axis
+
+
+def test_a_round_object_keeps_the_nets_own_angle_among_the_narrowest() -> None:
+    idx = (np.arange(224) + 0.5) * RES - 224 * RES / 2
+    y, x = np.meshgrid(idx, idx, indexing="ij")
+    hm = np.where(np.hypot(x, y) <= 0.025, 0.05, 0.0).astype(np.float32)  # a standing cylinder
+    clear = clear_picks(hm, RES, RG2, BINS)
+    assert clear[:, 112, 112].all()
+    widths = [closing_width(hm, RES, RG2, (112, 112), k * math.pi / BINS) for k in range(BINS)]
+    assert max(widths) - min(widths) <= 2 * RES  # every axis as wide, up to the pixels of its edge
+    for k_own in (0, 8):  # the narrowest two by the pixels: the net's own stays
+        assert narrowest_clear_bin(hm, RES, RG2, clear, 112, 112, k_own * math.pi / BINS) == k_own
+    k = narrowest_clear_bin(hm, RES, RG2, clear, 112, 112, 5 * math.pi / BINS)
+    assert k is not None and widths[k] <= min(widths) + RES
+    clear[:, 112, 112] = False
+    assert narrowest_clear_bin(hm, RES, RG2, clear, 112, 112, 0.0) is None  # nothing clear: no choice
+
+
+def test_decide_with_the_narrowest_rule_closes_across_the_blocks_narrow_side() -> None:
+    yaw = math.radians(30.0)
+    res = 0.005
+    size = 64
+    idx = (np.arange(size) + 0.5) * res - size * res / 2
+    y, x = np.meshgrid(idx, idx, indexing="ij")
+    u, v = x * math.cos(yaw) + y * math.sin(yaw), -x * math.sin(yaw) + y * math.cos(yaw)
+    hm = np.where((np.abs(u) <= 0.025) & (np.abs(v) <= 0.045), 0.05, 0.0).astype(np.float32)
+    color = np.zeros((size, size, 3), np.uint8)
+    model = RoManNet(SMALL_MODEL, seed=0)
+    cfg = ExplorationConfig(random_angle_prob=0.0)
+    rule = PickClearance(RG2, res, BINS, narrowest=True)
+    clear = clear_picks(hm, res, RG2, BINS)
+    for s in range(5):
+        a = decide(model, color, hm, False, 0.0, np.random.default_rng(s), ("pick",), cfg, clearance=rule)
+        assert clear[angle_bin(np.array(a.angle_rad), BINS), a.row, a.col]
+        k = narrowest_clear_bin(hm, res, RG2, clear, a.row, a.col, 0.0)
+        assert k is not None and abs(closing_width(hm, res, RG2, (a.col, a.row), a.angle_rad)
+                                     - closing_width(hm, res, RG2, (a.col, a.row), k * math.pi / BINS)) <= res
+
+
+def test_the_pick_angle_rule_follows_the_config_and_refuses_a_q_per_angle() -> None:
+    assert not PickClearance.for_config(load_config()).narrowest
+    rule = PickClearance.for_config(load_config_text('[exploration]\npick_clearance = true\npick_angle = "narrowest"\n'))
+    assert rule is not None and rule.narrowest
+    with pytest.raises(ConfigError, match="pick_angle"):
+        load_config_text('[exploration]\npick_angle = "widest"\n')
+    with pytest.raises(ConfigError, match="pick_angle_bins"):
+        load_config_text('[exploration]\npick_angle = "narrowest"\n[model]\npick_angle_bins = 16\n')
