@@ -52,6 +52,8 @@ SAVED_WITHOUT: dict[str, Any] = {
     "replay.samples_per_insert": 0.0,
     "sim.coupled_fingers": False,
     "exploration.pick_clearance": False,
+    "exploration.pick_angle": "net",
+    "model.pick_angle_bins": 0,
 }
 
 

@@ -115,6 +115,23 @@ def test_eval_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
     assert proc.returncode == 2 and "already holds runs" in proc.stderr
 
 
+def test_eval_takes_a_checkpoint_saved_before_a_model_field_existed(tmp_path: Path) -> None:
+    """A run trained before model.pick_angle_bins existed (its checkpoint's config lacks it) ran without it, and
+    evaluates as it ran: models trained then are what users evaluate."""
+    from romannet.learner.ckpt_integrity import read_verified, write_checkpoint_files
+
+    run_dir = make_run(tmp_path)
+    ckpt = next((run_dir / "checkpoints").glob("ckpt-*"))
+    saved = read_verified(ckpt)
+    state = json.loads((ckpt / "state.json").read_text())
+    del state["config"]["model"]["pick_angle_bins"]
+    write_checkpoint_files(ckpt, saved.tensors, state)
+    proc = romannet("eval", str(run_dir), "--runs", "1", "--workers", "1", "--protocol", "frozen", "--max-steps", "2",
+                    "--out", str(tmp_path / "out"))
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["runs"]
+
+
 def test_eval_compares_checkpoints_on_the_same_scenes(tmp_path: Path) -> None:
     """Two seeds of a recipe: each gets its own report under --out, both meet the same seeds, and
     comparison.json holds each one's metrics and their mean and range."""
