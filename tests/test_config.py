@@ -105,8 +105,10 @@ def test_every_experiment_recipe_loads():
     for path in recipes:
         cfg = load_config(path)
         assert cfg.replay.spi_limit is not None and cfg.actor.spool_max_items == 2, path  # paced
-        # the stacking recipes and the paper's method train two transitions per action, as measured
-        expected_spi = 2.0 if cfg.task.kind == "stacking" or path.stem == "clutter-paper" else 4.0
+        # the stacking recipes, the paper's method and the clutter variants that measure it train two
+        # transitions per action, as measured
+        two = cfg.task.kind == "stacking" or path.stem == "clutter-paper" or path.stem.startswith("clutter-spi2")
+        expected_spi = 2.0 if two else 4.0
         assert cfg.replay.samples_per_insert == expected_spi, path
         assert cfg.learner.publish_every_updates == 1, path  # the actor acts on the newest net
         if cfg.exploration.policy == "lae" and not path.stem.endswith("-paper"):  # -paper: as written, unfloored
