@@ -188,44 +188,36 @@ def squeezed_material(depth_hm: np.ndarray, g: GripperFootprint, row: int, col: 
     return np.stack([cols + c0 - col, rows + r0 - row], axis=1).astype(np.float64)
 
 
-def closing_width(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, xy_px: tuple[float, float],
-                  angle_rad: float) -> float:
-    """How far apart the fingers close along angle_rad on a pick over xy_px (column, row; pixel units): the
-    extent along the closing axis of the squeezed material (squeezed_material) within the pads' width of the
-    closing line (m); inf where it reaches an open finger (it does not fit) or the pick's pixel holds none."""
+def closing_widths(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, row: int, col: int,
+                   angles_rad: np.ndarray) -> np.ndarray:
+    """How far apart the fingers close along each angle on a pick at (row, col): the extent along the closing
+    axis of the squeezed material (squeezed_material) within the pads' width of the closing line (m); inf where
+    it reaches an open finger (it does not fit) or the pick's pixel holds none."""
     reach = g.travel_m / resolution_m
-    pts = squeezed_material(np.asarray(depth_hm, dtype=np.float32), g, int(xy_px[1]), int(xy_px[0]),
-                            int(math.ceil(reach)) + 1)
-    return math.inf if pts is None else _band_extent(pts, angle_rad, g.finger_half_width_m / resolution_m, reach) * resolution_m
-
-
-def _band_extent(pts: np.ndarray, angle_rad: float, half_width_px: float, reach_px: float) -> float:
-    """Extent (px) along angle_rad of the points within half_width_px of the line through the origin; inf where
-    one lies beyond reach_px along it."""
-    along = pts @ np.array([math.cos(angle_rad), math.sin(angle_rad)])
-    across = pts @ np.array([-math.sin(angle_rad), math.cos(angle_rad)])
-    along = along[np.abs(across) <= half_width_px]
-    if np.abs(along).max() >= reach_px:
-        return math.inf
-    return float(along.max() - along.min() + 1.0)
+    pts = squeezed_material(np.asarray(depth_hm, dtype=np.float32), g, row, col, int(math.ceil(reach)) + 1)
+    out = np.full(len(angles_rad), np.inf)
+    if pts is None:
+        return out
+    half_width = g.finger_half_width_m / resolution_m
+    for i, a in enumerate(angles_rad):
+        along = pts @ np.array([math.cos(a), math.sin(a)])
+        along = along[np.abs(pts @ np.array([-math.sin(a), math.cos(a)])) <= half_width]
+        if np.abs(along).max() < reach:
+            out[i] = (along.max() - along.min() + 1.0) * resolution_m
+    return out
 
 
 def narrowest_clear_bin(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, clear: np.ndarray,
                         row: int, col: int, own_angle: float) -> int | None:
     """Of the clear closing angles at (row, col) (clear: bool (bins, h, w)), the one the fingers close narrowest
-    along (closing_width; of those within a pixel of it, the one nearest own_angle: a round object has no narrow
-    side); None where no angle is clear or nothing fits between the fingers."""
+    along (closing_widths; of those within a pixel of it, the one nearest own_angle: a round object has no
+    narrow side); None where no angle is clear or nothing fits between the fingers."""
     bins = clear.shape[0]
     candidates = np.flatnonzero(clear[:, row, col])
-    reach = g.travel_m / resolution_m
-    pts = squeezed_material(np.asarray(depth_hm, dtype=np.float32), g, row, col, int(math.ceil(reach)) + 1)
-    if not candidates.size or pts is None:
-        return None
-    widths = np.array([_band_extent(pts, k * math.pi / bins, g.finger_half_width_m / resolution_m, reach)
-                       for k in candidates])
+    widths = closing_widths(depth_hm, resolution_m, g, row, col, candidates * (math.pi / bins))
     if not np.isfinite(widths).any():
         return None
-    near = candidates[widths <= widths.min() + 1.0]
+    near = candidates[widths <= widths.min() + resolution_m]
     gap = np.abs(np.mod(own_angle - near * (math.pi / bins) + math.pi / 2, math.pi) - math.pi / 2)
     return int(near[np.argmin(gap)])
 
@@ -263,7 +255,5 @@ class PickClearance:
         angle_rad."""
         if not self.narrowest:
             return angle_rad
-        k = narrowest_clear_bin(np.asarray(depth_hm, dtype=np.float32), self.resolution_m, self.footprint, clear,
-                                row, col, angle_rad)
+        k = narrowest_clear_bin(depth_hm, self.resolution_m, self.footprint, clear, row, col, angle_rad)
         return angle_rad if k is None else k * math.pi / self.bins
-

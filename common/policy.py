@@ -334,8 +334,8 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     (common/failure_memory.py); the returned maps leave them in, as they are the state's values, not the
     decision's. clearance: picks only where the open fingers and the hand come down to the grasp height, at
     the clear angle nearest the pick net's own, or its best clear angle where it has a Q per angle, or (the
-    rule's `narrowest`) across the narrowest side of what it squeezes (common/grasp_clearance.py). Returns the Action, or (Action, PolicyMaps) when
-    return_maps is True.
+    rule's `narrowest`) across the narrowest side of what it squeezes (common/grasp_clearance.py). Returns the
+    Action, or (Action, PolicyMaps) when return_maps is True.
     """
     nets = nets_to_run(holding, primitives)
     engine = model if isinstance(model, InferenceEngine) else None

@@ -17,7 +17,7 @@ from romannet.common.grasp_clearance import (
     PickClearance,
     angle_bin,
     clear_picks,
-    closing_width,
+    closing_widths,
     footprint_height,
     landing_heights,
     narrowest_clear_bin,
@@ -141,6 +141,10 @@ def _turned_block(size_px: int, half_m: tuple[float, float], top_m: float, yaw_r
     u = x * math.cos(yaw_rad) + y * math.sin(yaw_rad)
     v = -x * math.sin(yaw_rad) + y * math.cos(yaw_rad)
     return np.where((np.abs(u) <= half_m[0]) & (np.abs(v) <= half_m[1]), top_m, 0.0).astype(np.float32)
+
+
+def closing_width(hm: np.ndarray, res: float, g: GripperFootprint, xy: tuple[int, int], angle: float) -> float:
+    return float(closing_widths(hm, res, g, xy[1], xy[0], np.array([angle]))[0])
 
 
 def test_the_closing_width_is_a_blocks_side_when_square_and_its_diagonal_across_corners() -> None:
