@@ -57,6 +57,19 @@ def test_random_actions_are_always_valid_and_seeded() -> None:
         random_action(False, ("push", "pick", "place"), (64, 48), np.random.default_rng(7))
 
 
+def test_random_picks_under_the_clearance_rule_are_drawn_among_the_clear_pairs() -> None:
+    clear = np.zeros((4, 64, 48), bool)
+    clear[1, 10, 20] = clear[3, 40, 5] = True
+    rng = np.random.default_rng(3)
+    picks = [a for a in (random_action(False, ("push", "pick"), (64, 48), rng, clear) for _ in range(200))
+             if a.primitive == "pick"]
+    assert {(a.row, a.col, round(a.angle_rad, 6)) for a in picks} == {(10, 20, round(np.pi / 4, 6)),
+                                                                     (40, 5, round(3 * np.pi / 4, 6))}
+    nothing = np.zeros_like(clear)  # no clear pick anywhere: anywhere, as without the rule
+    anywhere = [random_action(False, ("pick",), (64, 48), rng, nothing) for _ in range(50)]
+    assert len({(a.row, a.col) for a in anywhere}) > 40
+
+
 def test_oracle_and_random_policies_run_the_protocol_without_a_checkpoint(tmp_path: Path) -> None:
     oracle = _eval(tmp_path, "oracle")
     random = _eval(tmp_path, "random", "--protocol", "paper")

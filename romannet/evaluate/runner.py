@@ -157,7 +157,9 @@ class Worker:
                           cfg.exploration, avoid=memory, clearance=PickClearance.for_config(cfg))
         if self.setup.policy == "oracle":
             return oracle_action(env)
-        return random_action(obs.holding, env.primitives, obs.depth_hm.shape, rng)
+        rule = PickClearance.for_config(cfg)
+        clear = rule.clear(obs.depth_hm) if rule is not None and not obs.holding else None
+        return random_action(obs.holding, env.primitives, obs.depth_hm.shape, rng, clear)
 
     def run(self, spec: RunSpec) -> RunLog:
         """Play one run to its end; an exception becomes a run that ended with "error: …"."""
