@@ -118,6 +118,7 @@ def test_eval_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:
 def test_eval_takes_a_checkpoint_saved_before_a_model_field_existed(tmp_path: Path) -> None:
     """A run trained before model.pick_angle_bins existed (its checkpoint's config lacks it) ran without it, and
     evaluates as it ran: models trained then are what users evaluate."""
+    from romannet.cli import main
     from romannet.learner.ckpt_integrity import read_verified, write_checkpoint_files
 
     run_dir = make_run(tmp_path)
@@ -126,9 +127,9 @@ def test_eval_takes_a_checkpoint_saved_before_a_model_field_existed(tmp_path: Pa
     state = json.loads((ckpt / "state.json").read_text())
     del state["config"]["model"]["pick_angle_bins"]
     write_checkpoint_files(ckpt, saved.tensors, state)
-    proc = romannet("eval", str(run_dir), "--runs", "1", "--workers", "1", "--protocol", "frozen", "--max-steps", "2",
-                    "--out", str(tmp_path / "out"))
-    assert proc.returncode == 0, proc.stderr
+    code = main(["eval", str(run_dir), "--runs", "1", "--workers", "1", "--protocol", "frozen", "--max-steps", "2",
+                 "--out", str(tmp_path / "out")])
+    assert code == 0
     assert json.loads((tmp_path / "out" / "report.json").read_text())["runs"]
 
 
