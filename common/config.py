@@ -267,6 +267,9 @@ class ExplorationConfig:
     # "narrowest", the clear angle across which the material under the pick is narrowest (square to a block's
     # faces; the net's angle head does not learn them, and diagonal grasps of a block fail twice as often).
     pick_angle: Literal["net", "narrowest"] = "net"
+    # With pick_clearance, the chosen pick moves along its closing axis to the middle of the material its pads
+    # squeeze (read from the heightmap): a pick off an object's middle has one finger shove it into the other.
+    pick_centre: bool = False
     epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
     epsilon_decay: float = 0.9998
     epsilon_min: float = 0.1
@@ -287,6 +290,8 @@ class ExplorationConfig:
                 "must be 0..200 px")
         require(self.pick_angle in ("net", "narrowest"), "exploration.pick_angle", self.pick_angle,
                 "must be 'net' or 'narrowest'")
+        require(self.pick_clearance or not self.pick_centre, "exploration.pick_centre", self.pick_centre,
+                "needs exploration.pick_clearance = true (the middle is read from what the clear pick squeezes)")
         require(0.0 <= self.epsilon_min <= self.epsilon_start <= 1.0, "exploration.epsilon_start",
                 self.epsilon_start, "must satisfy 0 <= epsilon_min <= epsilon_start <= 1")
         require(0.0 < self.epsilon_decay <= 1.0, "exploration.epsilon_decay", self.epsilon_decay,

@@ -8,7 +8,8 @@ is higher than the fingers' grasp height at p, and p itself holds material at th
 `clear_picks` evaluates it for every pixel on `bins` closing angles over half a turn (the hand is
 symmetric); a decision then picks only at pixels with a clear angle, at the clear angle nearest the pick
 net's own (`nearest_clear_angle`), or (exploration.pick_angle = "narrowest") at the clear angle across which
-the material between the fingers is narrowest (`narrowest_clear_bin`: square to a block's faces).
+the material between the fingers is narrowest (`narrowest_clear_bin`: square to a block's faces); with exploration.pick_centre the pick then moves along
+its closing axis to the middle of the material its pads squeeze (`centred_pixel`).
 
 Heights are metres above the table (the depth heightmap's values); angles as in common.action: from the x
 (column) axis toward the y (row) axis, the finger-closing axis.
@@ -188,23 +189,53 @@ def squeezed_material(depth_hm: np.ndarray, g: GripperFootprint, row: int, col: 
     return np.stack([cols + c0 - col, rows + r0 - row], axis=1).astype(np.float64)
 
 
+def _pad_band(pts: np.ndarray, angle_rad: float, half_width_px: float) -> np.ndarray:
+    """Positions along the closing axis (pixels) of the squeezed material's pixels (pts: (n, 2) column, row
+    offsets) within the pads' half width of the closing line."""
+    along = pts @ np.array([math.cos(angle_rad), math.sin(angle_rad)])
+    return along[np.abs(pts @ np.array([-math.sin(angle_rad), math.cos(angle_rad)])) <= half_width_px]
+
+
+def _squeezed(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, row: int, col: int) -> np.ndarray | None:
+    """squeezed_material within the fingers' reach of (row, col)."""
+    radius = int(math.ceil(g.travel_m / resolution_m)) + 1
+    return squeezed_material(np.asarray(depth_hm, dtype=np.float32), g, row, col, radius)
+
+
 def closing_widths(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, row: int, col: int,
                    angles_rad: np.ndarray) -> np.ndarray:
     """How far apart the fingers close along each angle on a pick at (row, col): the extent along the closing
     axis of the squeezed material (squeezed_material) within the pads' width of the closing line (m); inf where
     it reaches an open finger (it does not fit) or the pick's pixel holds none."""
     reach = g.travel_m / resolution_m
-    pts = squeezed_material(np.asarray(depth_hm, dtype=np.float32), g, row, col, int(math.ceil(reach)) + 1)
+    pts = _squeezed(depth_hm, resolution_m, g, row, col)
     out = np.full(len(angles_rad), np.inf)
     if pts is None:
         return out
-    half_width = g.finger_half_width_m / resolution_m
     for i, a in enumerate(angles_rad):
-        along = pts @ np.array([math.cos(a), math.sin(a)])
-        along = along[np.abs(pts @ np.array([-math.sin(a), math.cos(a)])) <= half_width]
+        along = _pad_band(pts, float(a), g.finger_half_width_m / resolution_m)
         if np.abs(along).max() < reach:
             out[i] = (along.max() - along.min() + 1.0) * resolution_m
     return out
+
+
+def centred_pixel(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, clear: np.ndarray,
+                  row: int, col: int, angle_rad: float) -> tuple[int, int]:
+    """(row, col) of a pick chosen at (row, col) along angle_rad moved along the closing axis to the middle of the
+    material its pads squeeze, so both fingers meet it together instead of one shoving it into the other; the
+    chosen pixel itself where nothing fits between the fingers or the middle is not clear along that angle
+    (clear: bool (bins, h, w))."""
+    pts = _squeezed(depth_hm, resolution_m, g, row, col)
+    if pts is None:
+        return row, col
+    along = _pad_band(pts, angle_rad, g.finger_half_width_m / resolution_m)
+    if np.abs(along).max() >= g.travel_m / resolution_m:
+        return row, col
+    mid = (along.max() + along.min()) / 2.0
+    r, c = row + int(round(mid * math.sin(angle_rad))), col + int(round(mid * math.cos(angle_rad)))
+    k = int(angle_bin(np.float32(angle_rad), clear.shape[0]))
+    inside = 0 <= r < clear.shape[1] and 0 <= c < clear.shape[2]
+    return (r, c) if inside and clear[k, r, c] else (row, col)
 
 
 def narrowest_clear_bin(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, clear: np.ndarray,
@@ -230,6 +261,7 @@ class PickClearance:
     resolution_m: float
     bins: int = DEFAULT_BINS
     narrowest: bool = False  # exploration.pick_angle == "narrowest": the chosen pick closes across its narrowest side
+    centre: bool = False  # exploration.pick_centre: the chosen pick moves to the middle of what its pads squeeze
 
     @classmethod
     def for_config(cls, cfg: Config) -> PickClearance | None:
@@ -242,7 +274,7 @@ class PickClearance:
         footprint = GripperFootprint(travel_m=sim.finger_travel_m, pick_depth_m=sim.pick_depth_m,
                                      tip_floor_m=sim.fingertip_clearance_m)
         return cls(footprint, cfg.workspace.resolution_m, cfg.model.pick_angle_bins or DEFAULT_BINS,
-                   cfg.exploration.pick_angle == "narrowest")
+                   cfg.exploration.pick_angle == "narrowest", cfg.exploration.pick_centre)
 
     def clear(self, depth_hm: np.ndarray) -> np.ndarray:
         """bool (bins, h, w): clear_picks on this heightmap (it depends on the heightmap alone, so a decision
@@ -257,3 +289,12 @@ class PickClearance:
             return angle_rad
         k = narrowest_clear_bin(depth_hm, self.resolution_m, self.footprint, clear, row, col, angle_rad)
         return angle_rad if k is None else k * math.pi / self.bins
+
+    def executed(self, depth_hm: np.ndarray, clear: np.ndarray, row: int, col: int,
+                 angle_rad: float) -> tuple[int, int, float]:
+        """(row, col, angle) a pick chosen at (row, col, angle_rad) executes: closing_angle, then with `centre`
+        the pixel moved to the middle of the squeezed material along that angle (centred_pixel)."""
+        angle = self.closing_angle(depth_hm, clear, row, col, angle_rad)
+        if self.centre:
+            row, col = centred_pixel(depth_hm, self.resolution_m, self.footprint, clear, row, col, angle)
+        return row, col, angle

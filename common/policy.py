@@ -334,7 +334,8 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     (common/failure_memory.py); the returned maps leave them in, as they are the state's values, not the
     decision's. clearance: picks only where the open fingers and the hand come down to the grasp height, at
     the clear angle nearest the pick net's own, or its best clear angle where it has a Q per angle, or (the
-    rule's `narrowest`) across the narrowest side of what it squeezes (common/grasp_clearance.py). Returns the
+    rule's `narrowest`) across the narrowest side of what it squeezes, moved (the rule's `centre`) to the middle
+    of what it squeezes (common/grasp_clearance.py). Returns the
     Action, or (Action, PolicyMaps) when return_maps is True.
     """
     nets = nets_to_run(holding, primitives)
@@ -364,7 +365,7 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
             maps, chosen_from = masked(PolicyMaps({**raw.q, **exact.q}, {**raw.angle, **exact.angle},
                                                   {**raw.q_bins, **exact.q_bins}))
     action = select_action(chosen_from, angles, explore_rate, exploration_cfg, rng, valid)
-    if clear_bins is not None and action.primitive == "pick" and clearance.narrowest:
-        angle = clearance.closing_angle(depth_hm, clear_bins, action.row, action.col, action.angle_rad)
-        action = dataclasses.replace(action, angle_rad=angle)
+    if clear_bins is not None and action.primitive == "pick" and (clearance.narrowest or clearance.centre):
+        row, col, angle = clearance.executed(depth_hm, clear_bins, action.row, action.col, action.angle_rad)
+        action = dataclasses.replace(action, row=row, col=col, angle_rad=angle)
     return (action, maps) if return_maps else action

@@ -16,6 +16,7 @@ from romannet.common.grasp_clearance import (
     GripperFootprint,
     PickClearance,
     angle_bin,
+    centred_pixel,
     clear_picks,
     closing_widths,
     footprint_height,
@@ -215,3 +216,58 @@ def test_the_pick_angle_rule_follows_the_config_and_refuses_a_q_per_angle() -> N
         load_config_text('[exploration]\npick_angle = "widest"\n')
     with pytest.raises(ConfigError, match="pick_angle_bins"):
         load_config_text('[exploration]\npick_angle = "narrowest"\n[model]\npick_angle_bins = 16\n')
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 30.0, 90.0])
+def test_a_pick_off_a_blocks_middle_moves_along_its_closing_axis_to_the_middle(yaw_deg: float) -> None:
+    yaw = math.radians(yaw_deg)
+    hm = _turned_block(224, (0.025, 0.04), 0.05, yaw)  # 5 x 8 cm, its middle at pixel (111.5, 111.5)
+    clear = clear_picks(hm, RES, RG2, BINS)
+    k = angle_bin(np.array(yaw), BINS)
+    angle = float(k) * math.pi / BINS  # closing across the 5 cm side
+    for along, across in ((8, 0), (-9, 0), (6, 7)):  # pixels off the middle along / across the closing axis
+        col = round(111.5 + along * math.cos(angle) - across * math.sin(angle))
+        row = round(111.5 + along * math.sin(angle) + across * math.cos(angle))
+        assert clear[k, row, col]
+        r, c = centred_pixel(hm, RES, RG2, clear, row, col, angle)
+        off = np.array([c - 111.5, r - 111.5])
+        assert abs(off @ [math.cos(angle), math.sin(angle)]) <= 1.5  # in the middle between the fingers
+        assert abs(off @ [-math.sin(angle), math.cos(angle)] - across) <= 1.5  # not moved across the axis
+
+
+def test_a_pick_stays_where_its_middle_is_not_clear_or_nothing_fits() -> None:
+    hm = _turned_block(224, (0.025, 0.025), 0.05, 0.0)
+    clear = clear_picks(hm, RES, RG2, BINS)
+    r, c = centred_pixel(hm, RES, RG2, clear, 111, 118, 0.0)
+    assert r == 111 and abs(c - 111.5) <= 1  # the middle of pixels 99-124
+    blocked = clear.copy()
+    blocked[0, 105:118, 105:118] = False  # the middle not clear along that angle: the chosen pixel stays
+    assert centred_pixel(hm, RES, RG2, blocked, 111, 118, 0.0) == (111, 118)
+    wide = _turned_block(224, (0.07, 0.07), 0.05, 0.0)  # wider than the opening: nothing to centre on
+    assert centred_pixel(wide, RES, RG2, np.ones_like(clear), 111, 130, 0.0) == (111, 130)
+    assert centred_pixel(hm, RES, RG2, clear, 20, 20, 0.0) == (20, 20)  # the table
+
+
+def test_decide_with_the_centre_rule_picks_in_the_middle_between_the_fingers() -> None:
+    res, size = 0.005, 64
+    idx = (np.arange(size) + 0.5) * res - size * res / 2
+    y, x = np.meshgrid(idx, idx, indexing="ij")
+    hm = np.where((np.abs(x) <= 0.025) & (np.abs(y) <= 0.04), 0.05, 0.0).astype(np.float32)
+    color = np.zeros((size, size, 3), np.uint8)
+    model = RoManNet(SMALL_MODEL, seed=0)
+    cfg = ExplorationConfig(random_angle_prob=0.0)
+    rule = PickClearance(RG2, res, BINS, centre=True)
+    clear = clear_picks(hm, res, RG2, BINS)
+    for s in range(5):
+        a = decide(model, color, hm, False, 1.0, np.random.default_rng(s), ("pick",), cfg, clearance=rule)
+        assert clear[angle_bin(np.array(a.angle_rad), BINS), a.row, a.col]
+        off = np.array([a.col - 31.5, a.row - 31.5]) @ [math.cos(a.angle_rad), math.sin(a.angle_rad)]
+        assert abs(off) <= 1.5
+
+
+def test_the_centre_rule_follows_the_config_and_needs_the_clearance_rule() -> None:
+    assert not PickClearance.for_config(load_config()).centre
+    rule = PickClearance.for_config(load_config_text("[exploration]\npick_clearance = true\npick_centre = true\n"))
+    assert rule is not None and rule.centre
+    with pytest.raises(ConfigError, match="pick_centre"):
+        load_config_text("[exploration]\npick_clearance = false\npick_centre = true\n")
