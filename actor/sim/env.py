@@ -218,5 +218,7 @@ class SimEnv:
             "moved_m": result.moved_m, "consecutive_failures": self.consecutive_failures,
             "unstable": unstable,
         }
+        if result.grasp is not None:  # why a pick that closed held or failed (grasp_check.py)
+            info.update(result.grasp.info(result.success, self.sim.grasp_min_gap_m))
         return StepResult(self.obs, judged.success, judged.progress_before, judged.progress_after, judged.reward,
                           bool(ended), ended, judged.detail, info)

@@ -22,6 +22,7 @@ import pybullet as p
 
 from romannet.common.config_sim import SimConfig
 
+from .grasp_check import ClosedGrasp, closed_grasp
 from .robot import Hand
 from .scene import Scene, StepBudget
 
@@ -55,6 +56,7 @@ class PrimitiveResult:
     hang_m: float = 0.0  # pick: how far the held body's bottom hangs below the fingertips
     moved_m: float = 0.0  # push: largest displacement of any object
     unstable: str = ""  # why the simulation went unstable during the primitive ("" = it did not)
+    grasp: ClosedGrasp | None = None  # pick: the grasp as the fingers closed (grasp_check.py)
 
 
 class Primitives:
@@ -157,18 +159,20 @@ class Primitives:
         z_contact = max(z_m if z_contact_m is None else z_contact_m, z_m, z_grasp)
         self._descend(x_m, y_m, z_grasp, z_contact, angle_rad, budget, guarded=True)
         self.arm.actuate_fingers(closed=True, budget=budget)
+        closed = closed_grasp(self.scene.client, self.arm.body_id, self.arm.finger_joints, self.scene.objects,
+                              self.arm.finger_gap_m(), (x_m, y_m), angle_rad)
         self.arm.move_tips(np.array([x_m, y_m, self.sim.lift_height_m]), angle_rad, budget, LIFT_SPEED_MPS)
         if budget.exhausted:
             return self._finish(budget, False, "step_budget")
         held = self.held_body()
         if held is None:
             self.arm.set_fingers(closed=False)
-            return self._finish(budget, False, "nothing_grasped")
+            return self._finish(budget, False, "nothing_grasped", grasp=closed)
         hang = float(self.arm.tip_position()[2] - self.scene.bottom_z(held))
         if remove_held:
             self.scene.remove_object(held)
             self.arm.set_fingers(closed=False)
-        return self._finish(budget, True, "", held_body=held, hang_m=hang)
+        return self._finish(budget, True, "", held_body=held, hang_m=hang, grasp=closed)
 
     def held_body(self) -> int | None:
         """The object held between the fingers: gap not closed and both fingers in contact with it."""

@@ -32,10 +32,12 @@ MAX_CONSECUTIVE_FAILURES = 10  # the paper's completion criterion
 
 @dataclass(frozen=True)
 class StepLog:
-    """One executed action: its primitive and whether it succeeded (the sub-task indicator X)."""
+    """One executed action: its primitive and whether it succeeded (the sub-task indicator X); for a failed
+    pick, why (the simulator's grasp cause, actor/sim/grasp_check.py, else the environment's reason)."""
 
     primitive: str
     success: bool
+    cause: str = ""
 
 
 @dataclass(frozen=True)
@@ -97,6 +99,12 @@ def share_picked(run: RunLog) -> float:
     return min(1.0, sum(s.success for s in run.steps if s.primitive == "pick") / max(1, run.ideal_actions))
 
 
+def failed_picks(runs: Sequence[RunLog]) -> dict[str, int]:
+    """Failed picks over every run by cause, most frequent first ("unknown": logged without a cause)."""
+    causes = Counter(s.cause or "unknown" for r in runs for s in r.steps if s.primitive == "pick" and not s.success)
+    return dict(causes.most_common())
+
+
 def _mean_or_none(values: Sequence[float | None]) -> float | None:
     kept = [v for v in values if v is not None]
     return mean(kept) if kept else None
@@ -116,13 +124,14 @@ class Summary:
     solved_all: bool  # every run completed
     pick_success_all_runs: float | None = None  # pooled over every run (not the paper's metric)
     median_share_picked: float | None = None  # removal tasks: median share of the objects a run picked
+    failed_picks: dict[str, int] = field(default_factory=dict)  # over every run, by cause (failed_picks)
 
     def as_dict(self) -> dict:
         return {"runs": self.runs, "completed": self.completed, "completion_rate": self.completion_rate,
                 "pick_success_rate": self.pick_success_rate, "action_efficiency": self.action_efficiency,
                 "mean_actions": self.mean_actions, "end_reasons": dict(self.end_reasons),
                 "solved_all": self.solved_all, "pick_success_all_runs": self.pick_success_all_runs,
-                "median_share_picked": self.median_share_picked}
+                "median_share_picked": self.median_share_picked, "failed_picks": dict(self.failed_picks)}
 
 
 def summarize(runs: Sequence[RunLog], limit: int = MAX_CONSECUTIVE_FAILURES, removal: bool = True) -> Summary:
@@ -138,7 +147,8 @@ def summarize(runs: Sequence[RunLog], limit: int = MAX_CONSECUTIVE_FAILURES, rem
         mean_actions=mean(r.actions for r in runs),
         end_reasons=dict(sorted(Counter(_reason_key(r, limit) for r in runs).items())),
         solved_all=len(done) == len(runs), pick_success_all_runs=pooled_pick_success(runs),
-        median_share_picked=median(share_picked(r) for r in runs) if removal else None)
+        median_share_picked=median(share_picked(r) for r in runs) if removal else None,
+        failed_picks=failed_picks(runs))
 
 
 def _reason_key(run: RunLog, limit: int) -> str:

@@ -63,12 +63,13 @@ def plan_runs(task: str, runs: int, base_seed: int, *, goal_heights: Sequence[in
 
 def run_to_json(run: RunLog) -> dict:
     d = asdict(run)
-    d["steps"] = [f"{s.primitive}:{int(s.success)}" for s in run.steps]
+    d["steps"] = [f"{s.primitive}:{int(s.success)}" + (f":{s.cause}" if s.cause else "") for s in run.steps]
     return d
 
 
 def run_from_json(d: dict) -> RunLog:
-    steps = tuple(StepLog(p, bool(int(ok))) for p, ok in (s.split(":") for s in d["steps"]))
+    steps = tuple(StepLog(p, bool(int(ok)), cause[0] if cause else "")
+                  for p, ok, *cause in (s.split(":", 2) for s in d["steps"]))
     return RunLog(d["case"], int(d["seed"]), int(d["ideal_actions"]), d["end_reason"], steps,
                   float(d.get("duration_s", 0.0)))
 

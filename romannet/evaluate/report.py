@@ -62,6 +62,10 @@ def markdown(report: dict[str, Any]) -> str:
         lines.append(_row("**all**", Summary(**report["overall"])))
         lines += ["", f"Cases completed in all runs: **{report['cases_solved_in_all_runs']} / "
                       f"{len(report['cases'])}**."]
+    failed = report["overall"].get("failed_picks") or {}
+    if failed:
+        causes = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in failed.items())
+        lines += ["", f"Failed picks by cause (all runs): {causes}."]
     lines += ["", "Completion: done without 10 consecutive failed attempts. Pick success and action efficiency "
                   "(ideal / actual actions) are averaged over completed runs, as the paper does. Not the paper's: "
                   "pick success pooled over all runs, and the median share of a scene's objects a run picked "

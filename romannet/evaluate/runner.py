@@ -35,7 +35,7 @@ from romannet.common.config import Config, load_config_text
 from romannet.common.episode_rules import ideal_actions
 from romannet.common.failure_memory import FailureMemory
 from romannet.common.grasp_clearance import PickClearance
-from romannet.common.interfaces import Observation
+from romannet.common.interfaces import Observation, StepResult
 from romannet.common.model import RoManNet, load_tensors
 from romannet.common.policy import InferenceEngine, decide
 from romannet.common.wire_messages import TransitionMsg
@@ -189,7 +189,7 @@ class Worker:
             t0 = time.time_ns()
             result = env.step(action)
             memory.record(action, bool(result.success), result.progress_before, result.progress_after)
-            steps.append(StepLog(action.primitive, bool(result.success)))
+            steps.append(StepLog(action.primitive, bool(result.success), failure_cause(action, result)))
             if trainer is not None and self.engine is not None:
                 msg = TransitionMsg.from_step(obs, action, result, actor_id="eval",
                                               episode_id=f"{spec.case}-{spec.seed}", step=step, start_ns=t0,
@@ -201,6 +201,15 @@ class Worker:
                 break
             obs = result.observation
         return RunLog(spec.case, spec.seed, ideal, end_reason, tuple(steps), time.perf_counter() - start)
+
+
+def failure_cause(action: Action, result: StepResult) -> str:
+    """Why a pick failed: the simulator's grasp cause (actor/sim/grasp_check.py), else the environment's
+    reason ("unreachable", ...); "" for a success or another primitive."""
+    if result.success or action.primitive != "pick":
+        return ""
+    grasp = result.info.get("grasp")
+    return str(grasp) if grasp and grasp != "held" else (result.detail or "failed")
 
 
 _WORKER: Worker | None = None
