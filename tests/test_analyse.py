@@ -29,7 +29,7 @@ def analyse(*args: str) -> int:
 
 def test_every_diagnostic_has_help_with_an_example(capsys):
     assert set(DIAGNOSTICS) == {"pick-offsets", "stack-actions", "repeated-failures", "training-counts",
-                                "angle-probe"}
+                                "angle-probe", "grasp-failures"}
     for what in DIAGNOSTICS:
         with pytest.raises(SystemExit) as done:
             analyse(what, "--help")
@@ -80,9 +80,10 @@ REPEATS_SCRIPT = [("pick", 5, 5, False, False, 1), ("pick", 5, 5, False, False, 
                   ("pick", 7, 5, False, False, 2)]  # after a success: not counted
 
 
-def record_script(path: Path, script: list[tuple[str, int, int, bool, bool, int]]) -> None:
+def record_script(path: Path, script: list[tuple[str, int, int, bool, bool, int]],
+                  infos: list[dict] | None = None) -> None:
     """An episode of the script's actions on an empty scene, recorded as the actor records one: each /step
-    record is recorder.step_record of its transition."""
+    record is recorder.step_record of its transition (with infos[i] as the environment's info)."""
     color, depth = np.full((SIDE_PX, SIDE_PX, 3), 90, np.uint8), np.zeros((SIDE_PX, SIDE_PX), np.float32)
     rec = EpisodeRecorder(path, {"run_id": "repeats", "actor_id": "a0", "episode_id": path.stem, "task": "clutter",
                                  "seed": 0, "weights_version_start": 0}, dumps_toml(config("repeats")),
@@ -98,7 +99,8 @@ def record_script(path: Path, script: list[tuple[str, int, int, bool, bool, int]
                 progress_before=0.0, progress_after=0.0, reward=0.0, done=last,
                 done_reason="step_limit" if last else "", holding_before=False, holding_after=False,
                 policy_version=version, explore_rate=0.1, initial_priority=None, sim_seed=0)
-            rec.write_step(encode_transition(msg), step_record(msg, [0.0, 0.0, 0.0]), start_ns + 10**8)
+            info = infos[step] if infos else None
+            rec.write_step(encode_transition(msg), step_record(msg, [0.0, 0.0, 0.0], info=info), start_ns + 10**8)
     finally:
         rec.close({"done_reason": "step_limit", "steps": len(script), "efficiency": None,
                    "weights_version_end": 2})
@@ -125,6 +127,31 @@ def test_repeated_failures_reads_a_run_from_its_recorded_steps(tmp_path, capsys)
     record_episode(tmp_path / "old" / "ep000000.mcap", steps=3)
     assert analyse("repeated-failures", str(tmp_path / "old")) == 2
     assert "a /step record lacks row, col, explored, weights_version" in capsys.readouterr().err
+
+
+def _grasp(cause: str, tilt: float | None = None, across_m: float = 0.0) -> dict:
+    """A simulated pick's step info (actor/sim/grasp_check.py)."""
+    info: dict = {"grasp": cause}
+    if tilt is not None:
+        info.update(grasp_tilt_deg=tilt, grasp_offset_along_m=0.0, grasp_offset_across_m=across_m)
+    return info
+
+
+def test_grasp_failures_reads_causes_tilt_and_offset_from_recorded_steps(tmp_path, capsys):
+    script = [("pick", 5, 5, True, False, 1), ("pick", 5, 6, False, False, 1), ("pick", 5, 7, False, True, 1),
+              ("pick", 5, 8, False, False, 1), ("push", 1, 1, True, False, 1), ("pick", 5, 9, False, False, 1)]
+    infos = [_grasp("held", 2.0, 0.001), _grasp("lost_in_lift", 20.0, -0.02), _grasp("closed_on_nothing"),
+             _grasp("lost_in_lift", 3.0, 0.04), {"seed": 0}, {"seed": 0}]  # the last: a pick refused, no grasp
+    record_script(tmp_path / "run" / "episodes" / "a0" / "ep000000.mcap", script, infos)
+    assert analyse("grasp-failures", str(tmp_path / "run"), "--json") == 0
+    out = json.loads(capsys.readouterr().out)["all"]
+    assert (out["picks"], out["picks_without_grasp"], out["failed"]) == (5, 1, 4)
+    assert out["failed_by_cause"] == {"lost_in_lift": 2, "closed_on_nothing": 1}
+    assert out["by_tilt"] == {"[0, 5) deg": {"picks": 2, "failed": 1, "failed_share": 0.5},
+                              ">= 15 deg": {"picks": 1, "failed": 1, "failed_share": 1.0}}
+    assert out["by_offset_across"] == {"[0, 0.5) cm": {"picks": 1, "failed": 0, "failed_share": 0.0},
+                                       "[1.5, 3) cm": {"picks": 1, "failed": 1, "failed_share": 1.0},
+                                       ">= 3 cm": {"picks": 1, "failed": 1, "failed_share": 1.0}}
 
 
 def _cube_heightmap(centre_rc: tuple[float, float], yaw_deg: float, side_px: int = 25) -> np.ndarray:

@@ -54,6 +54,14 @@ DIAGNOSTICS: dict[str, tuple[str, str, str]] = {
         "the recorded /step records, per training phase: the greedy actions right after a failure, how many "
         "repeat it exactly (same primitive and pixel), and how many of those ran on the same weights version.",
         "romannet analyse repeated-failures runs/clutter --split 52 --json"),
+    "grasp-failures": (
+        "why a simulated run's picks failed: by cause, by the object's tilt and the grasp's offset",
+        "Why a simulated run's picks failed, from the simulator's ground truth recorded with each pick (its "
+        "/step record's info): after the fingers closed, did they close on nothing, on two objects, or hold one "
+        "that was lost in the lift; and for an object both fingers touched, its tilt and how far its centre of "
+        "mass lies from the pick's point across the closing axis (the lever it turns about the fingers with). "
+        "Per training phase: picks, failures by cause, and the share failed by tilt and by that offset.",
+        "romannet analyse grasp-failures runs/clutter --split 100 --json"),
     "training-counts": (
         "actions, pick and place success, explored actions, success per block, episodes, highest stacks",
         "A training run's counts: actions, attempts and successes per primitive, explored actions, successful "
@@ -142,6 +150,10 @@ def _result(args: argparse.Namespace) -> dict:
         from .stack_actions import phase_summary
 
         per_phase = partial(phase_summary, radius_m=args.radius_m)
+    elif args.what == "grasp-failures":
+        from .grasp_failures import phase_summary as grasp_summary
+
+        per_phase = grasp_summary
     elif args.what == "repeated-failures":
         from .repeated_failures import phase_counts
 

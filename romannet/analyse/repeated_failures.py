@@ -19,7 +19,7 @@ from romannet.common.episode_file import STEP_TOPIC, EpisodeFileError, read_epis
 STEP_FIELDS = ("primitive", "row", "col", "explored", "success", "weights_version")  # what the count reads
 
 
-def _steps(path: Path) -> list[dict]:
+def episode_steps(path: Path) -> list[dict]:
     """The `/step` records of one episode file; EpisodeFileError for a record that is not a JSON object or
     lacks a field the count reads, so a foreign or older recording is named instead of failing mid-count."""
     out = []
@@ -37,7 +37,7 @@ def _steps(path: Path) -> list[dict]:
 
 def phase_counts(files: list[Path]) -> dict:
     """Counts over the episodes in `files` (see the module docstring)."""
-    return count_repeats([_steps(path) for path in files])
+    return count_repeats([episode_steps(path) for path in files])
 
 
 def count_repeats(episodes: list[list[dict]]) -> dict:
