@@ -220,16 +220,19 @@ def test_a_saved_config_without_a_field_whose_default_changed_loads_as_it_ran(tm
 
     from romannet.common.config import SAVED_WITHOUT, as_saved, load_config_text, load_saved_config
     assert set(SAVED_WITHOUT) == {"model.rotation_harmonics", "replay.samples_per_insert", "sim.coupled_fingers",
-                                  "exploration.pick_clearance", "exploration.pick_angle", "model.pick_angle_bins"}
+                                  "exploration.pick_clearance", "exploration.pick_angle", "model.pick_angle_bins",
+                                  "exploration.pick_centre"}
     old = to_dict(Config())
     del old["model"]["rotation_harmonics"], old["replay"]["samples_per_insert"], old["sim"]["coupled_fingers"]
     del old["exploration"]["pick_clearance"], old["exploration"]["pick_angle"], old["model"]["pick_angle_bins"]
+    del old["exploration"]["pick_centre"]
     path = tmp_path / "config.toml"
     path.write_text(tomli_w.dumps(old))
     for cfg in (load_saved_config(path), load_config_text(path.read_text())):
         assert cfg.model.rotation_harmonics == 1 and cfg.replay.spi_limit is None and not cfg.sim.coupled_fingers
         assert not cfg.exploration.pick_clearance
         assert cfg.exploration.pick_angle == "net" and cfg.model.pick_angle_bins == 0
+        assert not cfg.exploration.pick_centre
     assert load_saved_config(path, ["model.rotation_harmonics=2"]).model.rotation_harmonics == 2
     assert load_config(path) == Config()  # a recipe: the defaults
     assert as_saved({"model": {"channels": 32}})["model"] == {"channels": 32, "rotation_harmonics": 1,

@@ -209,9 +209,9 @@ def test_decide_with_the_narrowest_rule_closes_across_the_blocks_narrow_side() -
 
 
 def test_the_pick_angle_rule_follows_the_config_and_refuses_a_q_per_angle() -> None:
-    assert not PickClearance.for_config(load_config()).narrowest
-    rule = PickClearance.for_config(load_config_text('[exploration]\npick_clearance = true\npick_angle = "narrowest"\n'))
-    assert rule is not None and rule.narrowest
+    assert PickClearance.for_config(load_config()).narrowest  # the default
+    rule = PickClearance.for_config(load_config_text('[exploration]\npick_clearance = true\npick_angle = "net"\n'))
+    assert rule is not None and not rule.narrowest
     with pytest.raises(ConfigError, match="pick_angle"):
         load_config_text('[exploration]\npick_angle = "widest"\n')
     with pytest.raises(ConfigError, match="pick_angle_bins"):
@@ -265,9 +265,8 @@ def test_decide_with_the_centre_rule_picks_in_the_middle_between_the_fingers() -
         assert abs(off) <= 1.5
 
 
-def test_the_centre_rule_follows_the_config_and_needs_the_clearance_rule() -> None:
-    assert not PickClearance.for_config(load_config()).centre
-    rule = PickClearance.for_config(load_config_text("[exploration]\npick_clearance = true\npick_centre = true\n"))
-    assert rule is not None and rule.centre
-    with pytest.raises(ConfigError, match="pick_centre"):
-        load_config_text("[exploration]\npick_clearance = false\npick_centre = true\n")
+def test_the_centre_rule_follows_the_config_and_goes_with_the_clearance_rule() -> None:
+    assert PickClearance.for_config(load_config()).centre  # the default
+    rule = PickClearance.for_config(load_config_text("[exploration]\npick_clearance = true\npick_centre = false\n"))
+    assert rule is not None and not rule.centre
+    assert PickClearance.for_config(load_config_text("[exploration]\npick_clearance = false\n")) is None

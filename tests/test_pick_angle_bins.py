@@ -164,7 +164,7 @@ def test_the_config_field_and_the_clearance_bins() -> None:
     assert ModelConfig().pick_angle_bins == 0  # one Q per pixel, the angle from the rotation head
     with pytest.raises(ConfigError, match="model.pick_angle_bins"):
         load_config_text("[model]\npick_angle_bins = 12\n")
-    cfg = load_config_text("[model]\npick_angle_bins = 8\n[exploration]\npick_clearance = true\n")
+    cfg = load_config_text('[model]\npick_angle_bins = 8\n[exploration]\npick_clearance = true\npick_angle = "net"\n')
     rule = PickClearance.for_config(cfg)
     assert rule is not None and rule.bins == 8  # judged on the net's own angles
     assert PickClearance.for_config(load_config_text("[exploration]\npick_clearance = true\n")).bins == 16
