@@ -367,5 +367,7 @@ def decide(model: RoManNet | InferenceEngine, color_hm: np.ndarray, depth_hm: np
     action = select_action(chosen_from, angles, explore_rate, exploration_cfg, rng, valid)
     if clear_bins is not None and action.primitive == "pick" and (clearance.narrowest or clearance.centre):
         row, col, angle = clearance.executed(depth_hm, clear_bins, action.row, action.col, action.angle_rad)
+        if avoided is not None and not avoided["pick"][row, col]:  # the middle failed already: not again
+            row, col = action.row, action.col
         action = dataclasses.replace(action, row=row, col=col, angle_rad=angle)
     return (action, maps) if return_maps else action

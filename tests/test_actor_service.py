@@ -198,7 +198,8 @@ def test_a_greedy_actor_does_not_repeat_a_failed_action_in_its_episode(tmp_path:
     """exploration.failure_memory_px: untrained weights, no exploration, the same scene after each failed
     pick; each decision keeps out of the discs of the episode's failures since its last success."""
     cfg = load_config(None, [*OVERRIDES, "sim.max_steps=6", "exploration.initial_rate=0.0",
-                             "exploration.failure_memory_px=6", "task.use_push=false"])
+                             "exploration.failure_memory_px=6", "task.use_push=false",
+                             'exploration.pick_angle="net"', "exploration.pick_centre=false"])  # failures to avoid
     env = SimEnv.from_config(cfg)
     client = RecordingClient(store)
     try:

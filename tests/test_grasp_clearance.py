@@ -270,3 +270,23 @@ def test_the_centre_rule_follows_the_config_and_goes_with_the_clearance_rule() -
     rule = PickClearance.for_config(load_config_text("[exploration]\npick_clearance = true\npick_centre = false\n"))
     assert rule is not None and not rule.centre
     assert PickClearance.for_config(load_config_text("[exploration]\npick_clearance = false\n")) is None
+
+
+def test_the_centre_rule_does_not_move_a_pick_back_onto_a_failed_one() -> None:
+    from romannet.common.failure_memory import FailureMemory
+
+    res, size = 0.005, 64
+    idx = (np.arange(size) + 0.5) * res - size * res / 2
+    y, x = np.meshgrid(idx, idx, indexing="ij")
+    hm = np.where((np.abs(x) <= 0.025) & (np.abs(y) <= 0.04), 0.05, 0.0).astype(np.float32)
+    color = np.zeros((size, size, 3), np.uint8)
+    model = RoManNet(SMALL_MODEL, seed=0)
+    cfg = ExplorationConfig(random_angle_prob=0.0)
+    rule = PickClearance(RG2, res, BINS, centre=True)
+    first = decide(model, color, hm, False, 0.0, np.random.default_rng(0), ("pick",), cfg, clearance=rule)
+    memory = FailureMemory(radius_px=3)
+    memory.record(first, False, 0.0, 0.0)  # the middle failed
+    for s in range(5):
+        a = decide(model, color, hm, False, 1.0, np.random.default_rng(s), ("pick",), cfg, avoid=memory,
+                   clearance=rule)
+        assert (a.row - first.row) ** 2 + (a.col - first.col) ** 2 > 3 ** 2
