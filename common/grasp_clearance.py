@@ -8,8 +8,9 @@ is higher than the fingers' grasp height at p, and p itself holds material at th
 `clear_picks` evaluates it for every pixel on `bins` closing angles over half a turn (the hand is
 symmetric); a decision then picks only at pixels with a clear angle, at the clear angle nearest the pick
 net's own (`nearest_clear_angle`), or (exploration.pick_angle = "narrowest") at the clear angle across which
-the material between the fingers is narrowest (`narrowest_clear_bin`: square to a block's faces); with exploration.pick_centre the pick then moves along
-its closing axis to the middle of the material its pads squeeze (`centred_pixel`).
+the material between the fingers is narrowest (`narrowest_clear_bin`: square to a block's faces); with
+exploration.pick_centre the pick then moves along its closing axis to the middle of the material its pads
+squeeze (`centred_pixel`).
 
 Heights are metres above the table (the depth heightmap's values); angles as in common.action: from the x
 (column) axis toward the y (row) axis, the finger-closing axis.
@@ -196,7 +197,8 @@ def _pad_band(pts: np.ndarray, angle_rad: float, half_width_px: float) -> np.nda
     return along[np.abs(pts @ np.array([-math.sin(angle_rad), math.cos(angle_rad)])) <= half_width_px]
 
 
-def _squeezed(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, row: int, col: int) -> np.ndarray | None:
+def _squeezed(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, row: int,
+              col: int) -> np.ndarray | None:
     """squeezed_material within the fingers' reach of (row, col)."""
     radius = int(math.ceil(g.travel_m / resolution_m)) + 1
     return squeezed_material(np.asarray(depth_hm, dtype=np.float32), g, row, col, radius)
