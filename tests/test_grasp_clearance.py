@@ -248,16 +248,21 @@ def test_a_pick_stays_where_its_middle_is_not_clear_or_nothing_fits() -> None:
     assert centred_pixel(hm, RES, RG2, clear, 20, 20, 0.0) == (20, 20)  # the table
 
 
-def test_decide_with_the_centre_rule_picks_in_the_middle_between_the_fingers() -> None:
-    res, size = 0.005, 64
-    idx = (np.arange(size) + 0.5) * res - size * res / 2
+SMALL_RES = 0.005  # the decisions' small scene: 64 x 64 px, a 5 x 8 cm block 5 cm tall in the middle
+
+
+def _small_block_decisions() -> tuple[np.ndarray, np.ndarray, RoManNet, ExplorationConfig, PickClearance]:
+    """(heightmap, colour, untrained net, exploration, centre rule) for decide() on the small scene."""
+    idx = (np.arange(64) + 0.5) * SMALL_RES - 64 * SMALL_RES / 2
     y, x = np.meshgrid(idx, idx, indexing="ij")
     hm = np.where((np.abs(x) <= 0.025) & (np.abs(y) <= 0.04), 0.05, 0.0).astype(np.float32)
-    color = np.zeros((size, size, 3), np.uint8)
-    model = RoManNet(SMALL_MODEL, seed=0)
-    cfg = ExplorationConfig(random_angle_prob=0.0)
-    rule = PickClearance(RG2, res, BINS, centre=True)
-    clear = clear_picks(hm, res, RG2, BINS)
+    return (hm, np.zeros((64, 64, 3), np.uint8), RoManNet(SMALL_MODEL, seed=0),
+            ExplorationConfig(random_angle_prob=0.0), PickClearance(RG2, SMALL_RES, BINS, centre=True))
+
+
+def test_decide_with_the_centre_rule_picks_in_the_middle_between_the_fingers() -> None:
+    hm, color, model, cfg, rule = _small_block_decisions()
+    clear = clear_picks(hm, SMALL_RES, RG2, BINS)
     for s in range(5):
         a = decide(model, color, hm, False, 1.0, np.random.default_rng(s), ("pick",), cfg, clearance=rule)
         assert clear[angle_bin(np.array(a.angle_rad), BINS), a.row, a.col]
@@ -275,14 +280,7 @@ def test_the_centre_rule_follows_the_config_and_goes_with_the_clearance_rule() -
 def test_the_centre_rule_does_not_move_a_pick_back_onto_a_failed_one() -> None:
     from romannet.common.failure_memory import FailureMemory
 
-    res, size = 0.005, 64
-    idx = (np.arange(size) + 0.5) * res - size * res / 2
-    y, x = np.meshgrid(idx, idx, indexing="ij")
-    hm = np.where((np.abs(x) <= 0.025) & (np.abs(y) <= 0.04), 0.05, 0.0).astype(np.float32)
-    color = np.zeros((size, size, 3), np.uint8)
-    model = RoManNet(SMALL_MODEL, seed=0)
-    cfg = ExplorationConfig(random_angle_prob=0.0)
-    rule = PickClearance(RG2, res, BINS, centre=True)
+    hm, color, model, cfg, rule = _small_block_decisions()
     first = decide(model, color, hm, False, 0.0, np.random.default_rng(0), ("pick",), cfg, clearance=rule)
     memory = FailureMemory(radius_px=3)
     memory.record(first, False, 0.0, 0.0)  # the middle failed
