@@ -15,6 +15,7 @@ import contextlib
 import errno
 import json
 import logging
+import random
 import re
 import socket
 import time
@@ -105,12 +106,46 @@ def open_zenoh(config: zenoh.Config) -> zenoh.Session:
         raise ZenohOpenError(describe_open_error(str(exc))) from None
 
 
-def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that was free a moment ago (bind to port 0, read it, release it). Racy by nature;
-    fine for tests and for `romannet up` on one machine."""
+# Ports handed out below the kernel's ephemeral range: a port from bind(0) lies inside it, where any outgoing
+# connection or any session listening on port 0 may take it between the check and the listen.
+_EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+_LOWEST_PORT = 10000
+_handed_out: set[int] = set()
+
+
+def _ephemeral_low() -> int:
+    try:
+        return int(_EPHEMERAL_RANGE.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def _bindable(host: str, port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+def free_port(host: str = "127.0.0.1", rng: random.Random | None = None) -> int:
+    """A TCP port that was free a moment ago, drawn at random below the ephemeral range and never the same
+    twice in one process. Still racy against another process listening there; fine for tests and for
+    `romannet up` on one machine."""
+    rng = rng or random.SystemRandom()
+    high = _ephemeral_low()
+    if high - _LOWEST_PORT >= 1000:
+        for _ in range(200):
+            port = rng.randrange(_LOWEST_PORT, high)
+            if port not in _handed_out and _bindable(host, port):
+                _handed_out.add(port)
+                return port
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:  # no room below the range: ask the kernel
         s.bind((host, 0))
-        return int(s.getsockname()[1])
+        port = int(s.getsockname()[1])
+    _handed_out.add(port)
+    return port
 
 
 def make_config(config_file: str | Path | None = None, listen: Sequence[str] | None = None,

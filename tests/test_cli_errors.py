@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from romannet.common.zenoh_session import free_port
+
 ROOT = Path(__file__).resolve().parents[1]
 # The installed entry point, as a user runs it (the module where the venv's script is not there).
 _SCRIPT = shutil.which("romannet", path=str(Path(sys.executable).parent))
@@ -60,7 +62,7 @@ def test_config_with_a_bad_byte_inside_a_string(tmp_path: Path) -> None:
 def test_a_file_where_a_directory_belongs(tmp_path: Path) -> None:
     path = tmp_path / "notes.txt"
     path.write_text("a file, not a run")
-    port = f"tcp/127.0.0.1:{_free_port()}"
+    port = f"tcp/127.0.0.1:{free_port()}"
     for argv, named in ((["replay", "--dir", str(path), "--listen", port], path),
                         (["learner", "--run-dir", str(path), "--connect", port, "--max-updates", "1"], path),
                         (["actor", "--run-dir", str(path), "--actor-id", "a0", "--connect", port], path / "actors"),
@@ -71,14 +73,8 @@ def test_a_file_where_a_directory_belongs(tmp_path: Path) -> None:
 
 def test_a_replay_directory_whose_lock_cannot_be_opened(tmp_path: Path) -> None:
     (tmp_path / "replay" / "LOCK").mkdir(parents=True)
-    one_line_error(romannet("replay", "--dir", str(tmp_path / "replay"), "--listen", f"tcp/127.0.0.1:{_free_port()}"),
+    one_line_error(romannet("replay", "--dir", str(tmp_path / "replay"), "--listen", f"tcp/127.0.0.1:{free_port()}"),
                    str(tmp_path / "replay" / "LOCK"), "Is a directory")
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 # ---------------------------------------------------------------------------------------- actor state

@@ -66,3 +66,15 @@ def test_every_bad_input_token_of_the_server_is_final_and_nothing_else() -> None
     assert tokens <= INSERT_REFUSALS
     for transient in ("rate_limited", "shutting_down", "overloaded", "internal", "error"):
         assert not refused_for_good(transient)
+
+
+def test_free_ports_lie_below_the_ephemeral_range_and_never_repeat() -> None:
+    # A port from the ephemeral range can be taken by any outgoing connection before the service listens on
+    # it (a CI run lost a replay server that way); one handed out twice would collide within the process.
+    low = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
+    ports = [free_port() for _ in range(50)]
+    assert len(set(ports)) == 50
+    if low > 11000:
+        assert all(10000 <= port < low for port in ports)
+    with open_session(make_config(listen=[f"tcp/127.0.0.1:{ports[0]}"], connect=[])):
+        pass  # a port handed out can be listened on
