@@ -39,6 +39,9 @@ HAND_ABOVE_TIPS_M = 0.045
 # the fingertips (an arch grasped over its hole has material only higher up, and slips: measured).
 PAD_HEIGHTS_M = (0.003, 0.008)
 DEFAULT_BINS = 16  # closing angles the rule is judged on (over half a turn)
+# Neighbouring pixels of one object's top differ by less than this (a 5 cm block tilted 45 degrees: 2 mm a pixel
+# at 2 mm pixels); a larger step is an edge, or another object lying against it.
+SURFACE_STEP_M = 0.006
 CLEAR_M = 0.003  # the fingers reach their grasp height when nothing in their footprint is higher than this above it
 
 
@@ -221,12 +224,37 @@ def closing_widths(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprin
     return out
 
 
+def surface_run_middle(depth_hm: np.ndarray, floor_m: float, row: int, col: int, direction_rad: float,
+                       max_px: int, step_m: float = SURFACE_STEP_M) -> float:
+    """Where the middle of the continuous surface through (row, col) lies along a direction (pixels from it,
+    signed): walk both ways while each next pixel is above floor_m and within step_m of the last (a step
+    taller than that is another object, or one lying against it), at most max_px each way."""
+    h, w = depth_hm.shape
+    dc, dr = math.cos(direction_rad), math.sin(direction_rad)
+    ends = []
+    for sign in (1.0, -1.0):
+        last, reach = float(depth_hm[row, col]), 0
+        for t in range(1, max_px + 1):
+            r, c = int(round(row + sign * t * dr)), int(round(col + sign * t * dc))
+            if not (0 <= r < h and 0 <= c < w):
+                break
+            z = float(depth_hm[r, c])
+            if z < floor_m or abs(z - last) >= step_m:
+                break
+            last, reach = z, t
+        ends.append(sign * reach)
+    return (ends[0] + ends[1]) / 2.0
+
+
 def centred_pixel(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, clear: np.ndarray,
-                  row: int, col: int, angle_rad: float) -> tuple[int, int]:
+                  row: int, col: int, angle_rad: float, across: bool = False) -> tuple[int, int]:
     """(row, col) of a pick chosen at (row, col) along angle_rad moved along the closing axis to the middle of the
-    material its pads squeeze, so both fingers meet it together instead of one shoving it into the other; the
-    chosen pixel itself where nothing fits between the fingers or the middle is not clear along that angle
-    (clear: bool (bins, h, w))."""
+    material its pads squeeze, so both fingers meet it together instead of one shoving it into the other, and
+    with `across` then across that axis to the middle of the surface under it (surface_run_middle: a tilted
+    object grasped off its middle turns between the pads and slips out in the lift); the chosen pixel itself
+    where nothing fits between the fingers or the moved pixel is not clear along that angle (clear: bool
+    (bins, h, w))."""
+    depth_hm = np.asarray(depth_hm, dtype=np.float32)
     pts = _squeezed(depth_hm, resolution_m, g, row, col)
     if pts is None:
         return row, col
@@ -235,6 +263,11 @@ def centred_pixel(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint
         return row, col
     mid = (along.max() + along.min()) / 2.0
     r, c = row + int(round(mid * math.sin(angle_rad))), col + int(round(mid * math.cos(angle_rad)))
+    if across and 0 <= r < depth_hm.shape[0] and 0 <= c < depth_hm.shape[1]:
+        floor = g.grasp_height(depth_hm[row, col]) + max(PAD_HEIGHTS_M)
+        across_dir = angle_rad + math.pi / 2
+        shift = surface_run_middle(depth_hm, floor, r, c, across_dir, int(math.ceil(2 * g.travel_m / resolution_m)))
+        r, c = r + int(round(shift * math.sin(across_dir))), c + int(round(shift * math.cos(across_dir)))
     k = int(angle_bin(np.float32(angle_rad), clear.shape[0]))
     inside = 0 <= r < clear.shape[1] and 0 <= c < clear.shape[2]
     return (r, c) if inside and clear[k, r, c] else (row, col)
@@ -264,6 +297,7 @@ class PickClearance:
     bins: int = DEFAULT_BINS
     narrowest: bool = False  # exploration.pick_angle == "narrowest": the chosen pick closes across its narrowest side
     centre: bool = False  # exploration.pick_centre: the chosen pick moves to the middle of what its pads squeeze
+    across: bool = False  # exploration.pick_centre_across: ... and across the closing axis to the surface's middle
 
     @classmethod
     def for_config(cls, cfg: Config) -> PickClearance | None:
@@ -276,7 +310,8 @@ class PickClearance:
         footprint = GripperFootprint(travel_m=sim.finger_travel_m, pick_depth_m=sim.pick_depth_m,
                                      tip_floor_m=sim.fingertip_clearance_m)
         return cls(footprint, cfg.workspace.resolution_m, cfg.model.pick_angle_bins or DEFAULT_BINS,
-                   cfg.exploration.pick_angle == "narrowest", cfg.exploration.pick_centre)
+                   cfg.exploration.pick_angle == "narrowest", cfg.exploration.pick_centre,
+                   cfg.exploration.pick_centre and cfg.exploration.pick_centre_across)
 
     def clear(self, depth_hm: np.ndarray) -> np.ndarray:
         """bool (bins, h, w): clear_picks on this heightmap (it depends on the heightmap alone, so a decision
@@ -295,8 +330,9 @@ class PickClearance:
     def executed(self, depth_hm: np.ndarray, clear: np.ndarray, row: int, col: int,
                  angle_rad: float) -> tuple[int, int, float]:
         """(row, col, angle) a pick chosen at (row, col, angle_rad) executes: closing_angle, then with `centre`
-        the pixel moved to the middle of the squeezed material along that angle (centred_pixel)."""
+        the pixel moved to the middle of the squeezed material along that angle, and with `across` across it too
+        (centred_pixel)."""
         angle = self.closing_angle(depth_hm, clear, row, col, angle_rad)
         if self.centre:
-            row, col = centred_pixel(depth_hm, self.resolution_m, self.footprint, clear, row, col, angle)
+            row, col = centred_pixel(depth_hm, self.resolution_m, self.footprint, clear, row, col, angle, self.across)
         return row, col, angle

@@ -23,6 +23,7 @@ from romannet.common.grasp_clearance import (
     landing_heights,
     narrowest_clear_bin,
     nearest_clear_angle,
+    surface_run_middle,
 )
 from romannet.common.model import RoManNet
 from romannet.common.policy import decide
@@ -246,6 +247,39 @@ def test_a_pick_stays_where_its_middle_is_not_clear_or_nothing_fits() -> None:
     wide = _turned_block(224, (0.07, 0.07), 0.05, 0.0)  # wider than the opening: nothing to centre on
     assert centred_pixel(wide, RES, RG2, np.ones_like(clear), 111, 130, 0.0) == (111, 130)
     assert centred_pixel(hm, RES, RG2, clear, 20, 20, 0.0) == (20, 20)  # the table
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 30.0, 90.0])
+def test_with_across_a_pick_also_moves_across_its_closing_axis_to_the_blocks_middle(yaw_deg: float) -> None:
+    yaw = math.radians(yaw_deg)
+    hm = _turned_block(224, (0.025, 0.04), 0.05, yaw)  # 5 x 8 cm: across the 5 cm side the block is 8 cm long
+    clear = clear_picks(hm, RES, RG2, BINS)
+    k = angle_bin(np.array(yaw), BINS)
+    angle = float(k) * math.pi / BINS
+    for along, across in ((6, 7), (-4, -12), (0, 15)):
+        col = round(111.5 + along * math.cos(angle) - across * math.sin(angle))
+        row = round(111.5 + along * math.sin(angle) + across * math.cos(angle))
+        r, c = centred_pixel(hm, RES, RG2, clear, row, col, angle, across=True)
+        off = np.array([c - 111.5, r - 111.5])
+        assert np.hypot(*off) <= 2.0, (along, across, off)  # the block's middle both ways
+
+
+def test_the_surface_run_stops_at_a_step_so_a_neighbour_lying_against_it_is_not_its_middle() -> None:
+    hm = np.zeros((64, 64), np.float32)
+    hm[30:34, 10:30] = 0.04  # a block 20 px long, its top 4 cm high
+    hm[30:34, 30:50] = 0.05  # a taller one against it: 1 cm up, an edge, not the same surface
+    assert surface_run_middle(hm, 0.01, 32, 15, 0.0, max_px=40) == pytest.approx(4.5)  # middle of 10..29
+    hm[30:34, 30:50] = 0.043  # a tilted top rises 3 mm over one pixel: the same surface
+    assert surface_run_middle(hm, 0.01, 32, 15, 0.0, max_px=40) == pytest.approx(14.5)
+    assert surface_run_middle(hm, 0.01, 32, 15, 0.0, max_px=5) == pytest.approx(0.0)  # at most max_px each way
+
+
+def test_the_across_rule_needs_the_centre_rule_and_is_off_by_default() -> None:
+    assert not PickClearance.for_config(load_config()).across
+    on = load_config_text("[exploration]\npick_clearance = true\npick_centre = true\npick_centre_across = true\n")
+    assert PickClearance.for_config(on).across
+    off = load_config_text("[exploration]\npick_clearance = true\npick_centre = false\npick_centre_across = true\n")
+    assert not PickClearance.for_config(off).across
 
 
 SMALL_RES = 0.005  # the decisions' small scene: 64 x 64 px, a 5 x 8 cm block 5 cm tall in the middle
