@@ -55,7 +55,6 @@ SAVED_WITHOUT: dict[str, Any] = {
     "exploration.pick_angle": "net",
     "model.pick_angle_bins": 0,
     "exploration.pick_centre": False,
-    "exploration.pick_centre_across": False,
 }
 
 
