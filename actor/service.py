@@ -24,12 +24,15 @@ import logging
 import threading
 import time
 import zlib
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from romannet import __version__
 from romannet.common.action import Action, pixel_to_position
@@ -43,7 +46,7 @@ from romannet.common.failure_memory import FailureMemory
 from romannet.common.grasp_clearance import PickClearance
 from romannet.common.interfaces import Env, Observation, ReplayClient, StepResult, WeightsSource
 from romannet.common.model import RoManNet, state_dict_to_tensors
-from romannet.common.policy import InferenceEngine, PolicyMaps, decide
+from romannet.common.policy import InferenceEngine, PolicyMaps, PreparedWeights, decide
 from romannet.common.wire import TransitionMsg, encode_transition
 
 from .episode_state import next_episode_index
@@ -71,6 +74,14 @@ class Decision(NamedTuple):
     def value(self) -> float:
         """V of the observation: the largest Q over the nets that ran (those allowed in it)."""
         return max(float(q.max()) for q in self.maps.q.values())
+
+
+class PendingWeights(NamedTuple):
+    """Weights that arrived, being built into nets in the background (InferenceEngine.prepare_async)."""
+
+    version: int
+    tensors: Mapping[str, Tensor]
+    prepared: Future[PreparedWeights]
 
 
 @dataclass(frozen=True)
@@ -151,16 +162,34 @@ class ActorLoop:
         new = self.weights.poll_weights()
         if new is not None:
             version, tensors = new
-            try:
-                self.engine.load_state(tensors)
-            except Exception as err:  # weights our model refuses: keep acting with the ones we have
-                log.error("weights v%d refused by the model (%s); keeping v%d", version, err,
-                          self.stats.weights_version)
-            else:
-                if self.stats.initial_weights:
-                    log.info("first weights from the learner: now acting with v%d", version)
-                self.stats.weights_version, self.stats.initial_weights = version, False
-                self.loaded_weights = (version, tensors)
+            self._take_weights(version, tensors, lambda: self.engine.load_state(tensors))
+        self.poll_rate()
+
+    def begin_swap(self) -> PendingWeights | None:
+        """New weights, if any arrived, prepared on a background thread while the action executes (for an engine
+        whose swap costs about a decision: int8); `finish_swap` puts them in force."""
+        new = self.weights.poll_weights()
+        if new is None:
+            return None
+        version, tensors = new
+        return PendingWeights(version, tensors, self.engine.prepare_async(tensors))
+
+    def finish_swap(self, pending: PendingWeights) -> None:
+        self._take_weights(pending.version, pending.tensors, lambda: self.engine.install(pending.prepared.result()))
+
+    def _take_weights(self, version: int, tensors: Mapping[str, Tensor], load: Callable[[], None]) -> None:
+        try:
+            load()
+        except Exception as err:  # weights our model refuses: keep acting with the ones we have
+            log.error("weights v%d refused by the model (%s); keeping v%d", version, err,
+                      self.stats.weights_version)
+        else:
+            if self.stats.initial_weights:
+                log.info("first weights from the learner: now acting with v%d", version)
+            self.stats.weights_version, self.stats.initial_weights = version, False
+            self.loaded_weights = (version, tensors)
+
+    def poll_rate(self) -> None:
         rate = self.weights.poll_exploration()
         if rate is not None:
             if not self.stats.explore_rate_received:
@@ -359,13 +388,19 @@ class ActorLoop:
         start_ns = time.time_ns()
         action, maps, version, rate = decision
         q_ranges = recorder.write_q_maps(maps.q, start_ns) if recorder is not None else {}
+        pending = self.begin_swap() if self.engine.slow_swap else None
         result = self.env.step(action)
         end_ns = max(time.time_ns(), start_ns)
         # before the next decision, which avoids it
         self.failures.record(action, result.success, result.progress_before, result.progress_after)
+        if pending is not None:
+            self.finish_swap(pending)
         following = None
         if not result.done and not self.stop.is_set() and not self._last_action():
-            self.swap_policy()
+            if self.engine.slow_swap:  # weights that came during the action: prepared during the next one
+                self.poll_rate()
+            else:
+                self.swap_policy()
             following = self.decision(result.observation, rng)
         msg = TransitionMsg.from_step(
             obs, action, result, actor_id=self.acfg.actor_id, episode_id=episode_id, step=step,

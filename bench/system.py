@@ -13,6 +13,9 @@ Three measurements, one JSON object:
 - recipe paths (from a source checkout): the clutter recipe trained as `romannet up` runs it, 200 actions,
   today's path against the whole-map learner step with one thread per core in every process; actions/s
   after the first 60 actions, and their ratio.
+- recipe precisions (from a source checkout): the same recipe with the actor's decisions in the precision
+  "auto" picks here (bf16 or int8) against fp32.
+`parts` picks some of them (SYSTEM_PARTS), e.g. ("precisions",).
 """
 
 from __future__ import annotations
@@ -86,15 +89,13 @@ def _rate_after(times: list[int], skip: int) -> float | None:
     return (len(ts) - 1) / span_s if span_s > 0 else None
 
 
-def measure_recipe_paths(recipe: Path, actions: int = 200, pairs: int = 1, skip: int = 60,
-                         timeout_s: float = 1800.0) -> dict[str, Any]:
-    """A recipe's training pace (`romannet up`, 1 actor, paced as the recipe says) with today's learner and
-    thread plan against the whole-map path, alternating run by run; actions/s after the first `skip`."""
-    cores = os.cpu_count() or 1
-    whole_map = [*WHOLE_MAP_PATH, f"learner.num_threads={cores}", f"model.num_threads={cores}"]
-    rates: dict[str, list[float]] = {"current": [], "whole_map": []}
+def measure_recipe_variants(recipe: Path, variants: dict[str, list[str]], actions: int = 200, pairs: int = 1,
+                            skip: int = 60, timeout_s: float = 1800.0) -> dict[str, float | None]:
+    """A recipe's training pace (`romannet up`, 1 actor, paced as the recipe says) with each variant's --set
+    overrides, alternating run by run; median actions/s after the first `skip` per variant."""
+    rates: dict[str, list[float]] = {name: [] for name in variants}
     for _ in range(pairs):
-        for name, sets in (("current", []), ("whole_map", whole_map)):
+        for name, sets in variants.items():
             with tempfile.TemporaryDirectory(prefix="romannet-bench-recipe-") as tmp:
                 cmd = [sys.executable, "-m", "romannet.cli", "--log-level", "WARNING", "up", "--config", str(recipe),
                        "--runs-dir", tmp, "--name", "bench", "--actors", "1", "--max-actions", str(actions)]
@@ -108,33 +109,70 @@ def measure_recipe_paths(recipe: Path, actions: int = 200, pairs: int = 1, skip:
             rate = _rate_after(times, skip)
             if rate is not None:
                 rates[name].append(rate)
-    med = {k: round(statistics.median(v), 3) if v else None for k, v in rates.items()}
-    ratio = round(med["current"] / med["whole_map"], 2) if med["current"] and med["whole_map"] else None
+    return {k: round(statistics.median(v), 3) if v else None for k, v in rates.items()}
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return round(a / b, 2) if a and b else None
+
+
+def measure_recipe_paths(recipe: Path, actions: int = 200, pairs: int = 1, skip: int = 60) -> dict[str, Any]:
+    """Today's learner and thread plan against the whole-map path with one thread per core in every process."""
+    cores = os.cpu_count() or 1
+    whole_map = [*WHOLE_MAP_PATH, f"learner.num_threads={cores}", f"model.num_threads={cores}"]
+    med = measure_recipe_variants(recipe, {"current": [], "whole_map": whole_map}, actions, pairs, skip)
     return {"recipe": str(recipe), "actions": actions, "after_action": skip, "pairs": pairs,
-            "actions_per_s": med, "current_vs_whole_map": ratio,
+            "actions_per_s": med, "current_vs_whole_map": _ratio(med["current"], med["whole_map"]),
             "whole_map_sets": whole_map}
+
+
+def measure_recipe_precisions(recipe: Path, actions: int = 200, pairs: int = 1, skip: int = 60) -> dict[str, Any]:
+    """The actor's decisions in the precision "auto" picks here against fp32, the learner as the recipe has it:
+    what the faster decision nets in an actor that swaps weights after every learner update (int8's swap
+    costs more: it is prepared while the action executes). Nothing to compare where "auto" is fp32."""
+    from romannet.common.policy import resolve_inference_precision
+
+    auto = resolve_inference_precision("auto")
+    if auto == "fp32":
+        return {"recipe": str(recipe), "auto": auto, "left_out": "precision \"auto\" is fp32 on this machine"}
+    med = measure_recipe_variants(recipe, {auto: [], "fp32": ['model.precision="fp32"']}, actions, pairs, skip)
+    return {"recipe": str(recipe), "actions": actions, "after_action": skip, "pairs": pairs, "auto": auto,
+            "actions_per_s": med, f"{auto}_vs_fp32": _ratio(med[auto], med["fp32"])}
+
+
+SYSTEM_PARTS = ("throughput", "latency", "recipe", "precisions", "time")
 
 
 def run_system_benchmark(actions_per_actor: int = 30, actor_counts: tuple[int, ...] = (1, 2),
                          latency_actors: tuple[int, ...] = (1, 8), repeats: int = 5, robot: str = "gripper",
-                         resolution_m: float = 0.002, seed: int = 0) -> dict[str, Any]:
-    """All three measurements; see the module docstring."""
+                         resolution_m: float = 0.002, seed: int = 0,
+                         parts: tuple[str, ...] = SYSTEM_PARTS) -> dict[str, Any]:
+    """The measurements named in parts (SYSTEM_PARTS; see the module docstring)."""
+    unknown = sorted(set(parts) - set(SYSTEM_PARTS))
+    if unknown:
+        raise ValueError(f"unknown part(s) {', '.join(unknown)}: choose from {', '.join(SYSTEM_PARTS)}")
     result: dict[str, Any] = {
         "benchmark": "system", "cpu_count": os.cpu_count(), "load_average_at_start": os.getloadavg(),
-        "robot": robot, "resolution_m": resolution_m,
+        "robot": robot, "resolution_m": resolution_m, "parts": list(parts),
         "actions_per_actor": actions_per_actor, "throughput": [], "weights_latency": [],
     }
-    for n in actor_counts:
-        log.info("throughput with %d actor(s)", n)
-        result["throughput"].append(measure_fleet_throughput(n, actions_per_actor, robot, resolution_m))
-    for n in latency_actors:
-        log.info("weights latency with %d light actor(s)", n)
-        result["weights_latency"].append(measure_weights_latency(n, repeats))
+    if "throughput" in parts:
+        for n in actor_counts:
+            log.info("throughput with %d actor(s)", n)
+            result["throughput"].append(measure_fleet_throughput(n, actions_per_actor, robot, resolution_m))
+    if "latency" in parts:
+        for n in latency_actors:
+            log.info("weights latency with %d light actor(s)", n)
+            result["weights_latency"].append(measure_weights_latency(n, repeats))
     recipe = Path(__file__).resolve().parent.parent / "configs" / "experiments" / "clutter.toml"
-    if recipe.is_file():  # a source checkout: the clutter recipe's pace, today's path against the whole map
+    if recipe.is_file() and "recipe" in parts:  # a source checkout: the clutter recipe's pace
         log.info("recipe pace: %s, current vs whole-map path", recipe.name)
         result["recipe_paths"] = measure_recipe_paths(recipe)
-    log.info("actor time shares")
-    result["actor_time"] = measure_actor_time_shares(actions_per_actor, robot, resolution_m, seed)
+    if recipe.is_file() and "precisions" in parts:
+        log.info("recipe pace: %s, the actor's precision \"auto\" vs fp32", recipe.name)
+        result["recipe_precisions"] = measure_recipe_precisions(recipe)
+    if "time" in parts:
+        log.info("actor time shares")
+        result["actor_time"] = measure_actor_time_shares(actions_per_actor, robot, resolution_m, seed)
     result["load_average_at_end"] = os.getloadavg()  # other work on the box skews every number above
     return result

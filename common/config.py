@@ -173,8 +173,8 @@ class ModelConfig:
     # harmonics of the angle per pixel (common/model.py), so every pick trains every angle. The argmax takes
     # pixel and angle together (with the pick clearance rule, among the clear ones).
     pick_angle_bins: int = 0
-    # Inference numerics: "auto" picks bf16 where the CPU computes it natively, else fp32; "int8": the trunk in
-    # int8 (common/int8net.py, near ties rerun in fp32).
+    # Inference numerics: "auto" picks bf16 where the CPU computes it natively, else int8 where oneDNN runs it
+    # with AVX2 or more, else fp32; "int8": the trunk in int8 (common/int8net.py, near ties rerun in fp32).
     precision: Literal["auto", "fp32", "bf16", "int8"] = "auto"
     channels_last: bool = True
     num_threads: int = 0  # 0 = torch's default (one per core)
@@ -189,7 +189,7 @@ class ModelConfig:
         require(self.pick_angle_bins in PICK_ANGLE_BINS, "model.pick_angle_bins", self.pick_angle_bins,
                 "must be 0 (the angle from the rotation head) or 4, 8, 16 or 32 (a Q per closing angle)")
         require(self.precision in ("auto", "fp32", "bf16", "int8"), "model.precision", self.precision,
-                "must be 'auto' (bf16 where native, else fp32), 'fp32', 'bf16' or 'int8'")
+                "must be 'auto' (bf16 where native, else int8 with AVX2, else fp32), 'fp32', 'bf16' or 'int8'")
         require(self.num_threads >= 0, "model.num_threads", self.num_threads, "must be >= 0 (0 = torch default)")
 
 

@@ -14,7 +14,7 @@ import dataclasses
 import logging
 import os
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -125,12 +125,12 @@ def resolve_precision(precision: str) -> str:
 
 
 def resolve_inference_precision(precision: str) -> str:
-    """model.precision for the actor's decisions: "fp32", "bf16" or "int8". "auto": bf16 where native, else fp32.
-    Not int8: it keeps >= 0.99 of fp32's decisions at 0.70-0.87 of fp32's decision time, but a weight swap costs
-    ~3x fp32's (it measures each net's int8 error) and an actor swaps after every learner update; what that
-    nets on an AVX2 robot is not measured (docs/benchmarks.md)."""
+    """model.precision for the actor's decisions: "fp32", "bf16" or "int8". "auto": bf16 where native, else int8
+    where oneDNN runs it with AVX2 or more (on a real AVX2 CPU it keeps >= 0.99 of fp32's decisions at 0.62-0.71
+    of fp32's decision time; its weight swap, 4x fp32's, is prepared while the action executes:
+    docs/benchmarks.md), else fp32."""
     if precision == "auto":
-        return "bf16" if native_bf16() else "fp32"
+        return "bf16" if native_bf16() else "int8" if int8_wins() else "fp32"
     if precision == "int8":
         if not int8_ops_available():
             raise ValueError("precision 'int8' needs oneDNN's int8 convolutions (torch.ops.onednn.qconv2d_pointwise"
@@ -142,6 +142,14 @@ def resolve_inference_precision(precision: str) -> str:
     if precision not in INFERENCE_PRECISIONS:
         raise ValueError(f"precision {precision!r} must be 'auto', 'fp32', 'bf16' or 'int8'")
     return resolve_precision(precision)
+
+
+@dataclass(frozen=True)
+class PreparedWeights:
+    """New weights built into nets by InferenceEngine.prepare, not yet in use."""
+
+    model: RoManNet
+    nets: dict[str, FastNet | Int8Net]
 
 
 class InferenceEngine:
@@ -175,6 +183,8 @@ class InferenceEngine:
                                             initializer=torch.set_num_threads,
                                             initargs=(self._threads_per_net,))
         self.nets: dict[str, FastNet | Int8Net] = {}
+        self._spare: RoManNet | None = None  # the model the next weights are prepared into (prepare)
+        self._preparer: ThreadPoolExecutor | None = None
         self.tie_share = INT8_TIE_SHARE if self.precision == "int8" else 0.0
         self.exact_reruns = 0
         self._rebuild()
@@ -182,12 +192,14 @@ class InferenceEngine:
                     self.precision, cfg.precision, ",".join(cpu_bf16_flags()) or "none", self.fused,
                     self.threads, f", nets in parallel on {self._threads_per_net} each" if self._pool else "")
 
-    def _rebuild(self) -> None:
+    def _built(self, model: RoManNet) -> dict[str, FastNet | Int8Net]:
         if self.precision == "int8":
             bits = weight_bits_here()
-            self.nets = {name: Int8Net(net, self.fused, bits) for name, net in self.model.nets.items()}
-        else:
-            self.nets = {name: FastNet(net, self.precision, self.fused) for name, net in self.model.nets.items()}
+            return {name: Int8Net(net, self.fused, bits) for name, net in model.nets.items()}
+        return {name: FastNet(net, self.precision, self.fused) for name, net in model.nets.items()}
+
+    def _rebuild(self) -> None:
+        self.nets = self._built(self.model)
 
     def load_state(self, tensors: Mapping[str, Tensor]) -> None:
         """Swap in new weights (validated; DecodeError on mismatch) and refold them (tens of ms; int8 also
@@ -196,11 +208,41 @@ class InferenceEngine:
         self.model.eval()
         self._rebuild()
 
+    @property
+    def slow_swap(self) -> bool:
+        """Whether a weight swap costs about a decision (int8: ~0.1 s a net, most of it measuring its int8
+        error), so an actor should prepare it while an action executes (`prepare_async`)."""
+        return self.precision == "int8"
+
+    def prepare(self, tensors: Mapping[str, Tensor]) -> PreparedWeights:
+        """New weights validated (DecodeError on mismatch) and built into nets of their own, leaving the ones in
+        use untouched (folded fp32 weights may share storage with the model), for `install`."""
+        model, self._spare = self._spare or RoManNet(self.cfg, seed=0), None
+        try:
+            load_tensors(model, tensors)  # validates before it copies
+        except Exception:
+            self._spare = model
+            raise
+        return PreparedWeights(model.eval(), self._built(model))
+
+    def prepare_async(self, tensors: Mapping[str, Tensor]) -> Future[PreparedWeights]:
+        """`prepare` on a background thread with one core's threads (an action's physics or a robot's motion
+        runs meanwhile); the Future raises what prepare raises. One at a time: install it before the next."""
+        if self._preparer is None:
+            self._preparer = ThreadPoolExecutor(1, thread_name_prefix="romannet-weights",
+                                                initializer=torch.set_num_threads, initargs=(1,))
+        return self._preparer.submit(self.prepare, tensors)
+
+    def install(self, prepared: PreparedWeights) -> None:
+        """Act with prepared weights from now on (the previous model is kept to prepare the next ones into)."""
+        self._spare, self.model, self.nets = self.model, prepared.model, prepared.nets
+
     def close(self) -> None:
-        """Stop the worker thread (also done at interpreter exit)."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        """Stop the worker threads (also done at interpreter exit)."""
+        for pool in (self._pool, self._preparer):
+            if pool is not None:
+                pool.shutdown(wait=True)
+        self._pool = self._preparer = None
 
     def _run(self, name: str, x: Tensor, exact: bool = False) -> Tensor:
         net = self.nets[name]

@@ -9,6 +9,8 @@ import argparse
 import json
 import sys
 
+from romannet.bench.system import SYSTEM_PARTS
+
 
 def _repeats(args: argparse.Namespace) -> dict:
     """Each benchmark has its own default repeat count; pass --repeats only when the user gave it."""
@@ -56,7 +58,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "system":
         from romannet.bench.system import run_system_benchmark
 
-        result = run_system_benchmark(actions_per_actor=args.actions, seed=args.seed, **_repeats(args))
+        parts = tuple(x.strip() for x in args.parts.split(",") if x.strip())
+        result = run_system_benchmark(actions_per_actor=args.actions, seed=args.seed, parts=parts, **_repeats(args))
     elif args.what == "pick-geometry":
         from romannet.bench.pick_geometry import markdown, run_pick_geometry_benchmark
 
@@ -121,8 +124,10 @@ BENCHMARKS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
                 ("seed", "repeats", "batch_sizes", "device")),
     "system": ("fleet actions/s, weights latency, where actor time goes",
                "The whole fleet (`romannet up`): actions per second with 1 and 2 gripper actors, weights "
-               "latency to 1 and 8 actors, and the share of actor time in simulation, inference, encoding and "
-               "transport.", "romannet bench system --json --actions 30", ("seed", "repeats", "actions")),
+               "latency to 1 and 8 actors, the clutter recipe's training pace (today's learner path against the "
+               "whole-map one; the actor's precision \"auto\" against fp32) and the share of actor time in "
+               "simulation, inference, encoding and transport.", "romannet bench system --json --actions 30",
+               ("seed", "repeats", "actions", "parts")),
     "pick-geometry": ("which picks of a lone cube each hand holds",
                       "Which picks of a lone cube each simulated hand holds, by offset from the cube's centre "
                       "and by angle.", "romannet bench pick-geometry --hands panda,rg2 --cube-sizes 0.05,0.04",
@@ -195,7 +200,7 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
         q.set_defaults(seed=0, repeats=None, inserts=2000, actions=10, robots="arm,gripper", hands="panda,rg2",
                        cube_sizes="0.05,0.04", batch_sizes="1,4,8", device="cpu", messages=2000,
                        big_mb="100,250,500,1000", duration=600.0, kill_every="30,90", flips=8,
-                       sizes="8,32,64", period="1,2", topology="auto", set=[])
+                       sizes="8,32,64", period="1,2", topology="auto", set=[], parts=",".join(SYSTEM_PARTS))
         if "seed" in options:
             q.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
         if "repeats" in options:
@@ -226,6 +231,9 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                            "once every actor holds weights (default 180)")
         elif "duration" in options:
             q.add_argument("--duration", type=float, default=600.0, help="seconds of chaos once the fleet is up")
+        if "parts" in options:
+            q.add_argument("--parts", default=",".join(SYSTEM_PARTS), metavar="PART,...",
+                           help=f"comma-separated measurements, of {', '.join(SYSTEM_PARTS)} (default: all)")
         if "sizes" in options:
             q.add_argument("--sizes", default="8,32,64", help="comma-separated numbers of light actors "
                            "(default 8,32,64; a 1-actor run comes first)")

@@ -24,7 +24,9 @@ from romannet.actor.stats import read_status
 from romannet.common.config import Config, load_config
 from romannet.common.config_actor import ActorConfig
 from romannet.common.config_replay import ReplayConfig
+from romannet.common.int8net import int8_ops_available
 from romannet.common.model import RoManNet, state_dict_to_tensors
+from romannet.common.policy import InferenceEngine
 from romannet.common.replay_client import RateLimitedError
 from romannet.common.wire import ExplorationRateMsg
 from romannet.common.zenoh_session import NoReplyError, free_port, make_config, open_session
@@ -34,9 +36,11 @@ from romannet.replay.store import ReplayStore
 pytestmark = pytest.mark.timeout(120)
 
 # Small and fast: 64x64 heightmaps, a 160x120 camera (same field of view), tiny nets, short episodes.
+# fp32 decisions, whatever the CPU ("auto" is int8 on AVX2 without bf16, whose weights swap on its own schedule).
 OVERRIDES = ["workspace.resolution_m=0.007", 'sim.robot="gripper"', "sim.num_objects=3", "sim.max_steps=3",
              "model.channels=8", "model.residual_blocks=1", "camera.width_px=160", "camera.height_px=120",
-             "camera.fx_px=154.655", "camera.fy_px=154.655", "camera.cx_px=80.0", "camera.cy_px=60.0"]
+             "camera.fx_px=154.655", "camera.fy_px=154.655", "camera.cx_px=80.0", "camera.cy_px=60.0",
+             'model.precision="fp32"']
 
 
 @pytest.fixture(scope="module")
@@ -95,6 +99,33 @@ class RecordingClient(InProcessReplayClient):
         if ack.status == "accepted":
             self.accepted.append(transition)
         return ack
+
+
+@pytest.mark.skipif(not int8_ops_available(), reason="this PyTorch build has no oneDNN int8 convolutions")
+def test_an_int8_actor_prepares_new_weights_while_the_action_executes(tmp_path: Path, cfg: Config,
+                                                                       store: ReplayStore, monkeypatch) -> None:
+    # int8's weight swap measures each net's int8 error (about a decision's time): it is built on a background
+    # thread during the action's physics (or a robot's motion) and in force for the next decision.
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, precision="int8"))
+    prepared_on: list[str] = []
+    prepare = InferenceEngine.prepare
+
+    def spy(self: InferenceEngine, tensors):
+        prepared_on.append(threading.current_thread().name)
+        return prepare(self, tensors)
+
+    monkeypatch.setattr(InferenceEngine, "prepare", spy)
+    env = SimEnv.from_config(cfg)
+    weights = FakeWeights(cfg, version=7, after=1)  # polls: the episode's start, then before each action's physics
+    client = RecordingClient(store)
+    try:
+        stats = run_actor(cfg, tmp_path, env, client, weights, threading.Event(), actor_cfg=_acfg(max_actions=5))
+    finally:
+        env.close()
+    assert stats.actions == 5 and stats.weights_version == 7
+    assert prepared_on == ["romannet-weights_0"]
+    assert [t.policy_version for t in client.accepted] == [0, 7, 7, 7, 7]
+    assert client.accepted[0].next_value_version == 7  # the decision after the action used them
 
 
 @pytest.mark.parametrize("clearance", [False, True])

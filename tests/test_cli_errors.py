@@ -189,6 +189,18 @@ def test_unknown_argument_without_a_near_flag_gets_no_guess() -> None:
     assert error == "romannet info: error: unrecognized arguments: --zzzzzz"
 
 
+def test_bench_system_runs_the_parts_asked_for_and_refuses_unknown_ones(monkeypatch) -> None:
+    one_line_error(romannet("bench", "system", "--parts", "latency,bogus"), "unknown part(s) bogus",
+                   "throughput, latency, recipe, precisions, time")
+    from romannet.bench import system
+    from romannet.common import policy
+
+    monkeypatch.setattr(policy, "resolve_inference_precision", lambda p: "fp32")
+    result = system.run_system_benchmark(parts=("precisions",))  # "auto" is fp32: nothing to compare, no fleet
+    assert result["recipe_precisions"]["left_out"] == 'precision "auto" is fp32 on this machine'
+    assert result["throughput"] == [] and result["weights_latency"] == [] and "actor_time" not in result
+
+
 def test_bench_faults_help_describes_the_faults_benchmark() -> None:
     out = romannet("bench", "faults", "--help")
     assert out.returncode == 0, out.stderr

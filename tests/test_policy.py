@@ -36,7 +36,7 @@ def model() -> RoManNet:
 
 @pytest.fixture(scope="module")
 def engine(model) -> InferenceEngine:
-    eng = InferenceEngine(model)  # precision "auto": bf16 where native, else fp32
+    eng = InferenceEngine(model)  # precision "auto": bf16 where native, else int8 with AVX2, else fp32
     yield eng
     eng.close()
 
@@ -278,3 +278,37 @@ def test_two_harmonic_engine_decodes_the_same_angles_as_the_reference(scenes):
         assert diff.max() < 1e-3
     np.testing.assert_allclose(fast.angle["pick"], decode_rotation(raw[..., 1:], "pick"), atol=1e-6)
     assert np.all(np.abs(fast.angle["pick"]) <= np.pi / 2 + 1e-6)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "int8"])
+def test_prepared_weights_leave_the_nets_in_use_untouched_until_installed(scenes, precision):
+    # An actor prepares the next weights while it acts on the current ones (the folded fp32 weights may share
+    # storage with the model they were built from): nothing changes until install, and bad weights change nothing.
+    if precision == "int8" and not int8_ops_available():
+        pytest.skip("this PyTorch build has no oneDNN int8 convolutions")
+    cfg = ModelConfig(q_head_init="default", precision=precision)
+    old, new = RoManNet(cfg, seed=0).eval(), RoManNet(cfg, seed=1).eval()
+    eng = InferenceEngine(RoManNet(cfg, seed=0), cfg)
+    try:
+        before = eng.infer(*scenes[0], ("push", "pick")).q
+        prepared = eng.prepare_async(state_dict_to_tensors(new)).result()
+        assert eng.slow_swap == (precision == "int8")
+        during = eng.infer(*scenes[0], ("push", "pick")).q
+        for p in before:
+            np.testing.assert_array_equal(during[p], before[p])
+        eng.install(prepared)
+        after = eng.infer(*scenes[0], ("push", "pick")).q
+        ref_new = reference_maps(new, *scenes[0], ("push", "pick")).q
+        ref_old = reference_maps(old, *scenes[0], ("push", "pick")).q
+        for p in after:
+            assert np.abs(after[p] - ref_new[p]).max() < np.abs(after[p] - ref_old[p]).max()
+        bad = {k: v[..., :1] if k.endswith("conv6.weight") else v for k, v in state_dict_to_tensors(old).items()}
+        with pytest.raises(DecodeError):
+            eng.prepare_async(bad).result()
+        np.testing.assert_array_equal(eng.infer(*scenes[0], ("push", "pick")).q["pick"], after["pick"])
+        spare = eng._spare
+        eng.install(eng.prepare(state_dict_to_tensors(old)))
+        assert eng._spare is not spare and eng.model is spare  # the spare was kept through the refusal
+        np.testing.assert_array_equal(eng.infer(*scenes[0], ("push", "pick")).q["pick"], before["pick"])
+    finally:
+        eng.close()
