@@ -389,12 +389,14 @@ class ActorLoop:
         action, maps, version, rate = decision
         q_ranges = recorder.write_q_maps(maps.q, start_ns) if recorder is not None else {}
         pending = self.begin_swap() if self.engine.slow_swap else None
-        result = self.env.step(action)
-        end_ns = max(time.time_ns(), start_ns)
+        try:
+            result = self.env.step(action)
+            end_ns = max(time.time_ns(), start_ns)
+        finally:  # in force even if the step failed: the weights source hands each version out once
+            if pending is not None:
+                self.finish_swap(pending)
         # before the next decision, which avoids it
         self.failures.record(action, result.success, result.progress_before, result.progress_after)
-        if pending is not None:
-            self.finish_swap(pending)
         following = None
         if not result.done and not self.stop.is_set() and not self._last_action():
             if self.engine.slow_swap:  # weights that came during the action: prepared during the next one
