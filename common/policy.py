@@ -102,6 +102,14 @@ def native_bf16() -> bool:
             and onednn_isa_cap() not in ONEDNN_ISAS_WITHOUT_BF16)
 
 
+def bf16_prepack_runs() -> bool:
+    """Whether oneDNN's prepacked bf16 convolutions (the fused path) run here: they need AVX-512 (BW, VL, DQ) or
+    AVX-NE-CONVERT, natively bf16 or not; elsewhere bf16 runs through plain aten convolutions (emulated, slow)."""
+    flags = cpu_flags()
+    has = {"avx512bw", "avx512vl", "avx512dq"} <= flags or "avx_ne_convert" in flags
+    return has and onednn_isa_cap() not in ONEDNN_ISAS_WITHOUT_AVX2 + ("AVX2", "AVX2_VNNI")
+
+
 def int8_wins() -> bool:
     """Whether int8 decisions beat fp32 here: oneDNN's int8 convolutions on an x86 CPU with AVX2 or more."""
     return "avx2" in cpu_flags() and int8_ops_available() and onednn_isa_cap() not in ONEDNN_ISAS_WITHOUT_AVX2
@@ -171,7 +179,7 @@ class InferenceEngine:
         self.cfg = cfg
         self.model = (model if model is not None else RoManNet(cfg, seed=seed)).eval()
         self.precision = resolve_inference_precision(cfg.precision)
-        self.fused = fused_ops_available()
+        self.fused = fused_ops_available() and (self.precision != "bf16" or bf16_prepack_runs())
         if cfg.num_threads > 0:
             torch.set_num_threads(cfg.num_threads)
         self.threads = torch.get_num_threads()

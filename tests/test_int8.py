@@ -247,3 +247,18 @@ def test_bad_precision_is_a_config_error():
 def test_int8_actors_get_fp32_weights_on_the_wire():
     assert resolve_wire_dtype("auto", "int8") == "fp32"
     assert resolve_wire_dtype("bf16", "int8") == "bf16"  # an explicit setting wins
+
+
+def test_bf16_prepacked_convolutions_need_avx512_or_avx_ne_convert(monkeypatch):
+    # Without them oneDNN refuses to prepack bf16 weights, so a bf16 engine there runs plain aten convolutions
+    # (tests/test_weights_wire.py's bf16 engine runs on such a CPU).
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
+    monkeypatch.setattr(policy, "cpu_flags", lambda: frozenset({"avx2", "fma"}))
+    assert not policy.bf16_prepack_runs()
+    monkeypatch.setattr(policy, "cpu_flags", lambda: frozenset({"avx2", "avx_ne_convert"}))
+    assert policy.bf16_prepack_runs()
+    monkeypatch.setattr(policy, "cpu_flags", lambda: frozenset({"avx2", "avx512bw", "avx512vl", "avx512dq"}))
+    assert policy.bf16_prepack_runs()
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    assert not policy.bf16_prepack_runs()
