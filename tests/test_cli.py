@@ -26,6 +26,15 @@ def test_help_lists_verbs_with_examples():
     assert sub.returncode == 0 and "example:" in sub.stdout and "romannet bench inference --json" in sub.stdout
 
 
+def test_help_and_usage_errors_do_not_import_torch():
+    # torch takes ~2-3 s to import on a 2-core box: every verb's --help and every bad flag answer at once.
+    code = ("import sys\nfrom romannet.cli import main\nfor argv in (['--help'], ['eval', '--help'], "
+            "['sweep', '--help'], ['up', '--bogus']):\n    try:\n        main(argv)\n    except SystemExit:\n"
+            "        pass\nprint('torch' in sys.modules, file=sys.stderr)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert out.stderr.strip().splitlines()[-1] == "False", out.stderr[-2000:]
+
+
 def test_info_json_reports_parameters_and_resolved_config():
     out = romannet("info", "--json", "--set", "reward.push_weight=0.4")
     assert out.returncode == 0, out.stderr

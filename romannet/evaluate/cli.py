@@ -42,7 +42,7 @@ from typing import Any
 
 from romannet.common.errors import RomannetError
 
-from .policies import DESCRIPTION, POLICIES, SCRIPTED
+from .policy_names import DESCRIPTION, POLICIES, SCRIPTED
 
 log = logging.getLogger("romannet.eval")
 

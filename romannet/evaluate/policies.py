@@ -19,14 +19,6 @@ from romannet.common.exploration import ANGLE_RANGE_RAD
 from romannet.common.grasp_clearance import bin_angles
 from romannet.common.policy import nets_to_run
 
-POLICIES = ("net", "oracle", "random")
-SCRIPTED = ("oracle", "random")  # policies that need no checkpoint
-DESCRIPTION = {
-    "net": "the checkpoint's greedy policy",
-    "oracle": "the scripted oracle (reads object poses from the simulator: the ceiling)",
-    "random": "uniformly random valid actions (the floor; picks only where clear under the clearance rule)",
-}
-
 
 def random_action(holding: bool, primitives: Sequence[str], shape: tuple[int, int],
                   rng: np.random.Generator, clear: np.ndarray | None = None) -> Action:

@@ -42,7 +42,8 @@ from romannet.common.wire_messages import TransitionMsg
 from romannet.learner.trainer import Trainer
 
 from .metrics import RunLog, StepLog
-from .policies import POLICIES, random_action
+from .policies import random_action
+from .policy_names import POLICIES
 
 log = logging.getLogger(__name__)
 
