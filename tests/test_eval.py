@@ -98,6 +98,11 @@ def test_eval_frozen_protocol_is_deterministic_and_arrangement_cases_get_rows(tm
     assert [r["steps"] for r in a["runs"]] == [r["steps"] for r in b["runs"]]  # no learning: same actions
     assert all(r["ideal_actions"] >= 3 for r in a["runs"])  # the case's objects
     assert "Cases completed in all runs" in (tmp_path / "eval0" / "report.md").read_text()
+    # the decisions' numerics, which "auto" picks per CPU: bf16, int8 or fp32
+    from romannet.common.policy import resolve_inference_precision
+
+    assert a["precision"] == resolve_inference_precision("auto")
+    assert f"greedy policy in {a['precision']};" in (tmp_path / "eval0" / "report.md").read_text()
 
 
 def test_eval_bad_inputs_give_one_line_errors(tmp_path: Path) -> None:

@@ -302,6 +302,11 @@ def effective_protocol(args: argparse.Namespace) -> str:
 def _header_policy(args: argparse.Namespace, plan: CheckpointPlan) -> dict[str, Any]:
     """What acted, for the report's header; for a scripted policy a note that it ran frozen."""
     fields: dict[str, Any] = {"policy": plan.policy, "policy_description": DESCRIPTION[plan.policy]}
+    if plan.policy == "net":  # "auto" differs by CPU (bf16, int8 or fp32), and so may a near-tied decision
+        from romannet.common.config import load_config_text
+        from romannet.common.policy import resolve_inference_precision
+
+        fields["precision"] = resolve_inference_precision(load_config_text(plan.config_toml).model.precision)
     if plan.policy in SCRIPTED:
         fields["protocol_note"] = f"the {plan.policy} policy does not learn: evaluated frozen"
         if args.protocol == "paper":

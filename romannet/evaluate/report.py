@@ -42,6 +42,8 @@ def markdown(report: dict[str, Any]) -> str:
     policy = report.get("policy", "net")  # reports written before the oracle/random policies: a net
     if policy == "net":
         who = f"Checkpoint `{report['checkpoint']}` (update {report.get('updates', '?')}), greedy policy"
+        if report.get("precision"):
+            who += f" in {report['precision']}"
     else:
         who = f"Policy: {report.get('policy_description', policy)}; {report.get('protocol_note', 'frozen')}"
     lines = [f"### {report['task']} — policy `{policy}` — protocol `{report['protocol']}`", "",
