@@ -2,7 +2,7 @@
 
     run_system_benchmark(actions_per_actor=30, actor_counts=(1, 2), latency_actors=(1, 8))
 
-Three measurements, one JSON object:
+Five measurements, one JSON object:
 - throughput: `romannet up` (replay server, learner, N simulated actors as separate processes, everything
   over loopback Zenoh, the learner training alongside) runs N * actions_per_actor actions; per-actor
   actions/s come from the actor's MCAP episodes (first to last transition's log time, so start-up is not
