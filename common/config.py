@@ -274,7 +274,7 @@ class ExplorationConfig:
     pick_centre: bool = True
     # With pick_centre, also move the pick across its closing axis to the middle of the surface under it, as
     # the oracle grasps a bounding box's middle: a tilted block grasped off its centre of mass turns between
-    # the pads and slips out in the lift (most lost clutter picks). Not yet trained with (docs/results.md).
+    # the pads and slips out in the lift (most lost clutter picks). Not yet trained with (docs/journal.md).
     pick_centre_across: bool = False
     epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
     epsilon_decay: float = 0.9998

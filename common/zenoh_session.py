@@ -129,11 +129,11 @@ def _bindable(host: str, port: int) -> bool:
     return True
 
 
-def free_port(host: str = "127.0.0.1", rng: random.Random | None = None) -> int:
+def free_port(host: str = "127.0.0.1") -> int:
     """A TCP port that was free a moment ago, drawn at random below the ephemeral range and never the same
     twice in one process. Still racy against another process listening there; fine for tests and for
     `romannet up` on one machine."""
-    rng = rng or random.SystemRandom()
+    rng = random.SystemRandom()
     high = _ephemeral_low()
     if high - _LOWEST_PORT >= 1000:
         for _ in range(200):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -71,7 +72,7 @@ def test_every_bad_input_token_of_the_server_is_final_and_nothing_else() -> None
 def test_free_ports_lie_below_the_ephemeral_range_and_never_repeat() -> None:
     # A port from the ephemeral range can be taken by any outgoing connection before the service listens on
     # it (a CI run lost a replay server that way); one handed out twice would collide within the process.
-    low = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
+    low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
     ports = [free_port() for _ in range(50)]
     assert len(set(ports)) == 50
     if low > 11000:
