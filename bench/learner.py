@@ -4,6 +4,8 @@
   channels_last, the batch's items grouped by primitive into one forward pass per net, a 128 px window
   around each executed pixel, V(s_t+1) from the actor's next decision (sent with the item) — at each
   batch size.
+* full_head per batch size: the fast step with the last 9x9 conv and the heads on the whole window instead of
+  only the loss's region (learner.head_crop off); `fast_vs_full_head` is their ratio.
 * whole_map per batch size: the same with the whole 224 px heightmap and V(s_t+1) by a forward pass here
   (the step before windows and actor values); `fast_vs_whole_map` is their ratio.
 * naive_fp32_b1: the paper's literal schedule done plainly — eager fp32, NCHW, one transition per update.
@@ -72,15 +74,20 @@ def _rate(trainer: Trainer, items: list[BatchItem]) -> float:
 
 
 def run_learner_benchmark(batch_sizes: tuple[int, ...] = (1, 4, 8), repeats: int = 5, seed: int = 0,
-                          device: str = "cpu", naive_per_batch: bool = True) -> dict:
+                          device: str = "cpu", naive_per_batch: bool = True, threads: int = 0) -> dict:
     """Measure transitions trained per second; returns one JSON-able dict (see the module docstring)."""
     if repeats < 1 or not batch_sizes or min(batch_sizes) < 1:
         raise ValueError("repeats must be >= 1 and batch_sizes non-empty positive integers")
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError("device 'cuda' requested but torch sees no CUDA device")
+    if threads < 0:
+        raise ValueError("threads must be >= 0 (0: torch's default, one per core)")
+    if threads:  # `romannet up` gives a learner beside one actor a single thread on a 2-core box
+        torch.set_num_threads(threads)
     started = time.perf_counter()
     model_cfg, reward_cfg, task_cfg = ModelConfig(), RewardConfig(), TaskConfig()
     fast_cfg = LearnerConfig(seed=seed)
+    full_head_cfg = LearnerConfig(seed=seed, head_crop=False)
     # The step before window training and the actors' V(s_t+1): the whole heightmap, V by a forward pass here.
     today_cfg = LearnerConfig(seed=seed, train_crop_px=0, actor_value_max_age=0)
     naive_cfg = LearnerConfig(seed=seed, precision="fp32", channels_last=False, train_crop_px=0,
@@ -90,10 +97,12 @@ def run_learner_benchmark(batch_sizes: tuple[int, ...] = (1, 4, 8), repeats: int
     fast = Trainer(model_cfg, fast_cfg, reward_cfg, task_cfg, device=device)
     naive = Trainer(model_cfg, naive_cfg, reward_cfg, task_cfg, device=device)
     today = Trainer(model_cfg, today_cfg, reward_cfg, task_cfg, device=device)
+    full_head = Trainer(model_cfg, full_head_cfg, reward_cfg, task_cfg, device=device)
 
     runs: dict[str, tuple[Trainer, list[BatchItem]]] = {"naive_fp32_b1": (naive, pool[:1])}
     for b in batch_sizes:
         runs[f"fast_b{b}"] = (fast, pool[:b])
+        runs[f"full_head_b{b}"] = (full_head, pool[:b])
         runs[f"whole_map_b{b}"] = (today, pool[:b])
         if naive_per_batch and b > 1:
             runs[f"naive_fp32_b{b}"] = (naive, pool[:b])
@@ -111,10 +120,12 @@ def run_learner_benchmark(batch_sizes: tuple[int, ...] = (1, 4, 8), repeats: int
         "fast_vs_naive_b1": ratios,
         "fast_vs_whole_map": {f"b{b}": round(per_s[f"fast_b{b}"] / per_s[f"whole_map_b{b}"], 2)
                               for b in batch_sizes},
+        "fast_vs_full_head": {f"b{b}": round(per_s[f"fast_b{b}"] / per_s[f"full_head_b{b}"], 2)
+                              for b in batch_sizes},
         "target_ratio": TARGET_RATIO,
         "target_met": {k: v >= TARGET_RATIO for k, v in ratios.items()},
         "fast_settings": {"precision": fast.precision, "channels_last": fast_cfg.channels_last,
-                          "train_crop_px": fast_cfg.train_crop_px,
+                          "train_crop_px": fast_cfg.train_crop_px, "head_crop": fast_cfg.head_crop,
                           "actor_value_max_age": fast_cfg.actor_value_max_age,
                           "grouped_forward_per_primitive": True, "fp32_heads": True, "torch_compile": False},
         "batch_mix": "even items: successful picks (bootstrap over push+pick), odd: failed pushes",
@@ -137,10 +148,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--threads", type=int, default=0, help="torch threads (default 0: one per core)")
     p.add_argument("--json", action="store_true", help="compact JSON on one line")
     args = p.parse_args(argv)
     sizes = tuple(int(b) for b in args.batch_sizes.split(",") if b.strip())
-    result = run_learner_benchmark(sizes, args.repeats, args.seed, args.device)
+    result = run_learner_benchmark(sizes, args.repeats, args.seed, args.device, threads=args.threads)
     sys.stdout.write(json.dumps(result, indent=None if args.json else 2) + "\n")
     return 0
 

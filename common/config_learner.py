@@ -70,6 +70,10 @@ class LearnerConfig:
     # heightmap (learner/crop.py): 128 holds the label's support with the nets' receptive field around it, so
     # the losses equal the whole image's, at a third of the cost at 224 px. 0 = the whole heightmap.
     train_crop_px: int = 128
+    # Run the last 9x9 conv and the heads only on the region the loss reads (the label's support and 4 px
+    # around it) instead of the whole window: exactly the same losses and gradients (learner/crop.py,
+    # head_region), with that conv, the step's largest, on a small share of the pixels. Off only to measure it.
+    head_crop: bool = True
     # "rotate": train each item on a window centred on its executed pixel, turned by a multiple of pi / 16 and
     # mirrored or not, the action's angle moved with it (learner/augment.py), so a net with a Q per closing
     # angle learns every angle from every pick, as VPG's rotated inputs do; "none": as trained so far.

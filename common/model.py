@@ -97,6 +97,10 @@ class GRConvNet(nn.Module):
                 self.q_head.bias.mul_(q_head_scale)
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        return self.head(self.features(x))
+
+    def features(self, x: Tensor) -> Tensor:
+        """(B, C, h, w): everything up to the last BatchNorm, i.e. the input of `head`."""
         h, w = x.shape[-2:]
         if h % 4 or w % 4:
             raise ValueError(f"input is {h}x{w}: RoManNet needs h and w to be multiples of 4")
@@ -105,7 +109,11 @@ class GRConvNet(nn.Module):
         x = torch.relu(self.bn3(self.conv3(x)))
         x = self.res(x)
         x = torch.relu(self.bn4(self.deconv1(x)))
-        x = torch.relu(self.bn5(self.deconv2(x)))
+        return torch.relu(self.bn5(self.deconv2(x)))
+
+    def head(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """The 9x9 conv and the 1x1 heads: stride 1 and no BatchNorm, so on any region of `features` it gives
+        the whole map's values wherever they are at least head_radius() from the region's inner edges."""
         x = self.conv6(x)
         q = self.q_head(x)
         if self.q_basis is None:
@@ -113,6 +121,10 @@ class GRConvNet(nn.Module):
         with torch.autocast(x.device.type, enabled=False):  # fp32, as the heads (learner/trainer.py)
             q = torch.einsum("kj,bjhw->bkhw", self.q_basis, q.float())
         return q, self.rot_head(x)
+
+    def head_radius(self) -> int:
+        """Pixels of `features` either side of an output pixel that `head` reads (the 9x9 conv's 4)."""
+        return self.conv6.kernel_size[0] // 2
 
 
 class RoManNet(nn.Module):

@@ -34,3 +34,26 @@ def crop_origin(size: tuple[int, int], row: int, col: int, crop: int) -> tuple[i
         return min(max(s, 0), (side - crop) // NET_STRIDE * NET_STRIDE)
 
     return start(row, h), start(col, w)
+
+
+def head_region(boxes: list[tuple[int, int, int, int]], size: tuple[int, int],
+                margin: int) -> tuple[tuple[int, int], list[tuple[int, int]]]:
+    """The region of the nets' last features each item's head runs on (learner.head_crop): one (rows, cols)
+    size for the batch and a top-left (row, col) per item, holding the item's box (r0, r1, c0, c1: first and
+    last row and column of its label's support and executed pixel) with `margin` pixels either side, or the
+    map's own edge, where the full map pads with zeros too. So the head's output over each box equals the
+    full map's (common/model.py, GRConvNet.head)."""
+    if not boxes:
+        raise ValueError("head_region needs at least one box")
+    h, w = size
+    for r0, r1, c0, c1 in boxes:
+        if not (0 <= r0 <= r1 < h and 0 <= c0 <= c1 < w):
+            raise ValueError(f"box {(r0, r1, c0, c1)} is not within the {h}x{w} map")
+    rh = min(h, max(r1 - r0 + 1 for r0, r1, _, _ in boxes) + 2 * margin)
+    rw = min(w, max(c1 - c0 + 1 for _, _, c0, c1 in boxes) + 2 * margin)
+
+    def start(lo: int, hi: int, extent: int, side: int) -> int:
+        # centred on the box; shifted to the map's edge where it would cross it (the edge pads as the map does)
+        return min(max(lo - margin - (extent - (hi - lo + 1) - 2 * margin) // 2, 0), side - extent)
+
+    return (rh, rw), [(start(r0, r1, rh, h), start(c0, c1, rw, w)) for r0, r1, c0, c1 in boxes]

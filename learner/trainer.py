@@ -54,7 +54,7 @@ from romannet.common.policy import nets_to_run, resolve_precision
 from romannet.common.wire_messages import PriorityUpdateMsg, SampleBatchMsg, TransitionMsg
 
 from .augment import moved_window, symmetry_index, window_size
-from .crop import crop_origin
+from .crop import crop_origin, head_region
 from .losses import (
     executed_pixel_loss,
     item_loss,
@@ -81,7 +81,7 @@ class StepStats:
     td_errors: tuple[float, ...]  # |Q(s_t, a_t) - Y| at the executed pixel (new replay priorities)
     targets: tuple[float, ...]  # Y per item
     item_ids: tuple[int, ...]
-    q_mean: dict[str, float]  # over the Q maps of s_t of the items trained in that net
+    q_mean: dict[str, float]  # over the Q maps of s_t the step computed in that net (learner.head_crop: the loss regions)
     q_max: dict[str, float]
     exploration_loss: float  # the paper's L_t: mean over items of Huber(TD error at the executed pixel)
     exploration_rate: float  # after this step's update
@@ -129,6 +129,26 @@ def _fp32_heads(model: RoManNet) -> None:
     for net in model.nets.values():
         for head in (net.q_head, net.rot_head):
             head.forward = types.MethodType(_fp32_head_forward, head)
+
+
+def _head_crop(g: _GroupInputs, features: Tensor, margin: int) -> tuple[_GroupInputs, Tensor]:
+    """Each item's labels, support, executed pixel and last features cut to the region its loss reads
+    (learner/crop.py, head_region): the 9x9 conv and the heads then run on that region only, with the same
+    losses and gradients as on the whole window."""
+    boxes = []
+    for k in range(len(g.support)):
+        rows = torch.nonzero(g.support[k].any(dim=1)).flatten().tolist() + [int(g.rows[k])]
+        cols = torch.nonzero(g.support[k].any(dim=0)).flatten().tolist() + [int(g.cols[k])]
+        boxes.append((min(rows), max(rows), min(cols), max(cols)))
+    (rh, rw), origins = head_region(boxes, tuple(g.support.shape[-2:]), margin)
+
+    def cut(t: Tensor) -> Tensor:
+        return torch.stack([t[k, ..., r0:r0 + rh, c0:c0 + rw] for k, (r0, c0) in enumerate(origins)])
+
+    r0s = torch.tensor([r0 for r0, _ in origins], device=g.rows.device)
+    c0s = torch.tensor([c0 for _, c0 in origins], device=g.cols.device)
+    return g._replace(label=cut(g.label), support=cut(g.support), rows=g.rows - r0s, cols=g.cols - c0s), \
+        cut(features)
 
 
 def actor_value_usable(t: TransitionMsg, version: int, max_age: int) -> bool:
@@ -337,8 +357,13 @@ class Trainer:
         """The loss of one primitive's items in one forward pass of its net (learner/losses.py)."""
         cfg = self.cfg
         g = self._group_inputs(ts, v_next, item_ids)
+        net = self.model.nets[p]
         with self._autocast():
-            q, rot = self.model.nets[p](g.x)
+            features = net.features(g.x)
+            if cfg.head_crop:
+                g, features = _head_crop(g, features, net.head_radius())
+                features = features.contiguous(memory_format=self.memory_format)
+            q, rot = net.head(features)
         q, rot = q.float(), rot.float()
         ar = torch.arange(len(ts), device=self.device)
         if q.dim() == 4:  # a Q per closing angle: each item's label trains its executed angle's map

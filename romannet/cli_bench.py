@@ -54,7 +54,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from romannet.bench.learner import run_learner_benchmark
 
         sizes = tuple(int(b) for b in args.batch_sizes.split(",") if b.strip())
-        result = run_learner_benchmark(batch_sizes=sizes, seed=args.seed, device=args.device, **_repeats(args))
+        result = run_learner_benchmark(batch_sizes=sizes, seed=args.seed, device=args.device, threads=args.threads,
+                                       **_repeats(args))
     elif args.what == "system":
         from romannet.bench.system import run_system_benchmark
 
@@ -119,9 +120,10 @@ BENCHMARKS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
             "for each robot mode.", "romannet bench sim --json --actions 10 --robots arm,gripper",
             ("seed", "actions", "robots")),
     "learner": ("transitions trained/s per batch size",
-                "Transitions trained per second for each batch size, against the naive eager fp32 step.",
-                "romannet bench learner --json --batch-sizes 1,4,8 --repeats 10",
-                ("seed", "repeats", "batch_sizes", "device")),
+                "Transitions trained per second for each batch size: the learner's step against the same with "
+                "the last conv on the whole window, the whole-map step and the naive eager fp32 step.",
+                "romannet bench learner --json --batch-sizes 4 --repeats 5 --threads 1",
+                ("seed", "repeats", "batch_sizes", "device", "threads")),
     "system": ("fleet actions/s, weights latency, where actor time goes",
                "The whole fleet (`romannet up`): actions per second with 1 and 2 gripper actors, weights "
                "latency to 1 and 8 actors, the clutter recipe's training pace (today's learner path against the "
@@ -200,7 +202,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
         q.set_defaults(seed=0, repeats=None, inserts=2000, actions=10, robots="arm,gripper", hands="panda,rg2",
                        cube_sizes="0.05,0.04", batch_sizes="1,4,8", device="cpu", messages=2000,
                        big_mb="100,250,500,1000", duration=600.0, kill_every="30,90", flips=8,
-                       sizes="8,32,64", period="1,2", topology="auto", set=[], parts=",".join(SYSTEM_PARTS))
+                       sizes="8,32,64", period="1,2", topology="auto", set=[], parts=",".join(SYSTEM_PARTS),
+                       threads=0)
         if "seed" in options:
             q.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
         if "repeats" in options:
@@ -252,5 +255,9 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                            help="seconds between kills, drawn uniformly from [LOW, HIGH]")
         if "flips" in options:
             q.add_argument("--flips", type=int, default=8, help="bytes flipped in each damaged copy")
+        if "threads" in options:
+            q.add_argument("--threads", type=int, default=0,
+                           help="torch threads (default 0: one per core; `romannet up` gives a learner beside one "
+                                "actor on 2 cores 1)")
         if "device" in options:
             q.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (when there is a GPU)")

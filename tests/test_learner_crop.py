@@ -10,7 +10,7 @@ import torch
 
 from romannet.common.config import ModelConfig
 from romannet.common.model import GRConvNet
-from romannet.learner.crop import crop_origin
+from romannet.learner.crop import crop_origin, head_region
 from romannet.learner.trainer import actor_value_usable
 
 
@@ -92,3 +92,72 @@ def test_actor_value_usable_rules():
     assert not actor_value_usable(with_value, 7, 2)  # from the future: a different learner's versions
     assert not actor_value_usable(with_value, 10, 0)  # off
     assert not actor_value_usable(base, 10, 100)  # none sent
+
+
+@pytest.mark.parametrize("boxes,size", [
+    ([(50, 74, 40, 52), (10, 12, 100, 127)], (128, 128)),   # one box at the map's edge
+    ([(0, 0, 0, 0)], (64, 64)),                            # a single pixel in the corner
+    ([(0, 127, 3, 9)], (128, 128)),                        # a box as tall as the map
+    ([(60, 70, 60, 70), (61, 61, 2, 2), (120, 127, 0, 20)], (128, 96)),
+])
+def test_head_region_holds_each_box_with_its_margin_or_the_maps_edge(boxes, size):
+    margin = 4
+    (rh, rw), origins = head_region(boxes, size, margin)
+    h, w = size
+    assert rh <= h and rw <= w
+    for (r0, r1, c0, c1), (o_r, o_c) in zip(boxes, origins, strict=True):
+        assert 0 <= o_r <= h - rh and 0 <= o_c <= w - rw
+        assert o_r <= r0 and r1 < o_r + rh and o_c <= c0 and c1 < o_c + rw
+        assert o_r == 0 or r0 - o_r >= margin  # an inner edge keeps the head's reach clear of the box
+        assert o_c == 0 or c0 - o_c >= margin
+        assert o_r + rh == h or o_r + rh - 1 - r1 >= margin
+        assert o_c + rw == w or o_c + rw - 1 - c1 >= margin
+
+
+@pytest.mark.parametrize("boxes", [[], [(5, 4, 0, 0)], [(0, 64, 0, 0)], [(-1, 0, 0, 0)]])
+def test_head_region_rejects_boxes_outside_the_map(boxes):
+    with pytest.raises(ValueError):
+        head_region(boxes, (64, 64), 4)
+
+
+def test_head_on_a_region_equals_the_whole_map_over_the_region_minus_the_radius():
+    torch.manual_seed(0)
+    net = GRConvNet(8, 1, rotation_harmonics=2).eval()
+    x = torch.randn(2, 4, 64, 64)
+    with torch.no_grad():
+        f = net.features(x)
+        whole_q, whole_rot = net.head(f)
+        q, rot = net.head(f[:, :, 10:40, 0:30])  # inner edges at rows 10, 39 and column 29; column 0 is the map's
+    m = net.head_radius()
+    assert m == 4
+    torch.testing.assert_close(q[:, m:-m, :-m], whole_q[:, 10 + m:40 - m, 0:30 - m], atol=1e-6, rtol=0)
+    torch.testing.assert_close(rot[:, :, m:-m, :-m], whole_rot[:, :, 10 + m:40 - m, 0:30 - m], atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("learner", [
+    dict(train_crop_px=64),                                                    # windows inside the map
+    dict(train_crop_px=0, rotation_support="kernel", loss_reduction="mean"),   # the whole map, kernel rotation loss
+    dict(train_crop_px=64, augment="rotate", executed_pixel_weight=1.0),       # turned windows
+])
+def test_head_crop_trains_exactly_as_the_whole_window(learner):
+    # Same nets, same batch (picks and a push, one executed pixel at the map's edge): the step's losses, TD
+    # errors and every updated weight agree with the head run on the whole window.
+    items = H.batch(4, size=96)
+    items.append((H.transition(96, seed=9, row=95, col=0, reward=1.0), 0.7, 9))
+    items.append((H.transition(96, seed=8, row=50, col=41, reward=1.0), 0.9, 8))
+    runs = []
+    for head_crop in (False, True):
+        t = H.trainer(head_crop=head_crop, **learner)
+        stats = t.train_step(items)
+        runs.append((stats, t.model.state_dict()))
+    (full, full_w), (crop, crop_w) = runs
+    assert crop.loss == pytest.approx(full.loss, rel=1e-5, abs=1e-7)
+    assert crop.td_errors == pytest.approx(full.td_errors, rel=1e-5, abs=1e-6)
+    assert crop.loss_by_primitive == pytest.approx(full.loss_by_primitive, rel=1e-5, abs=1e-7)
+    assert crop.exploration_loss == pytest.approx(full.exploration_loss, rel=1e-5, abs=1e-7)
+    moved = 0
+    for name, w in full_w.items():
+        torch.testing.assert_close(crop_w[name], w, atol=1e-6, rtol=1e-5, msg=name)
+    for name, p in H.trainer(**learner).model.state_dict().items():
+        moved += int(not torch.equal(p, full_w[name]))
+    assert moved > 10  # the step did train (so the comparison above compared trained weights)
