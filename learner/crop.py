@@ -13,6 +13,10 @@ window on the whole image's grid: away from the window's edges (56 px), and wher
 image's own edge, the window's output equals the whole image's exactly. What differs is only BatchNorm's
 batch statistics in train mode, now taken over windows; the running statistics the actors act on are
 estimated from the same windows, so training and acting stay consistent.
+
+Within the window, the last 9x9 conv and the 1x1 heads come after the last BatchNorm and have stride 1: run on
+a region of the features that holds the support with the conv's 4 px around it (head_region), they give the
+window's values over the support exactly, so the step runs them there only (learner.head_crop).
 """
 
 from __future__ import annotations

@@ -7,7 +7,8 @@ One `train_step(batch)`:
 2. Labels (learner.targets.q_label): R_tpg + eta*gamma*V on the TPG support; Y at the executed pixel. Each
    item trains on a window around its executed pixel (learner/crop.py), turned by a multiple of pi / 16
    and mirrored or not with learner.augment = "rotate" (learner/augment.py).
-3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net (a pick
+3. Items grouped by executed primitive, each group one batched forward pass of that primitive's net, its last
+   conv and heads on the region each item's loss reads (learner.head_crop; learner/crop.py) (a pick
    net with a Q per closing angle, model.pick_angle_bins: each item's executed angle's map); the loss
    (learner/losses.py, whose docstring has the formulas): the Huber loss over each label's support
    + the rotation loss on successes (at the executed pixel, or over the support with learner.rotation_support
