@@ -15,6 +15,7 @@ import pytest
 from romannet.actor.sim.block_meshes import BLOCK_SHAPES, block_extents_m, block_obj_text
 from romannet.actor.sim.objects import (
     CUBE_SIZE_M,
+    LATERAL_FRICTION,
     NOVEL_OBJECT_SCALE,
     OBJECT_SETS,
     PALETTE_RGBA,
@@ -23,6 +24,7 @@ from romannet.actor.sim.objects import (
     novel_object_paths,
     random_object_specs,
     spawn_object,
+    urdf_lateral_friction,
 )
 from romannet.common.config import WorkspaceConfig
 
@@ -157,6 +159,29 @@ def test_novel_subset_is_fixed_loads_and_fits_the_gripper(client: int) -> None:
         ext = np.sort(_extent(client, body))
         assert ext[0] <= GRIPPER_OPENING_M - 0.025, (path, ext)  # a side the open gripper spans
         assert ext[2] <= 0.09, (path, ext)
+
+
+def test_a_urdf_keeps_the_friction_it_declares_and_blocks_keep_ours(client: int, tmp_path: Path) -> None:
+    novel = novel_object_paths()[0]
+    assert urdf_lateral_friction(novel) == 1.0  # random_urdfs: <contact><lateral_friction value="1.0"/>
+    body = spawn_object(client, ObjectSpec("urdf:" + novel, RED, (0.5, 0.0, 0.1), scale=NOVEL_OBJECT_SCALE))
+    assert p.getDynamicsInfo(body, -1, physicsClientId=client)[1] == pytest.approx(1.0)
+    block = spawn_object(client, ObjectSpec("cube", RED, (0.6, 0.0, 0.1)))
+    assert p.getDynamicsInfo(block, -1, physicsClientId=client)[1] == pytest.approx(LATERAL_FRICTION)
+
+    bare = tmp_path / "bare.urdf"  # no <contact>: our friction
+    bare.write_text(Path(novel).read_text().split("<contact>")[0] + Path(novel).read_text().split("</contact>")[1])
+    assert "<contact>" not in bare.read_text() and urdf_lateral_friction(str(bare)) is None
+    mesh_dir = Path(novel).parent
+    (tmp_path / Path(novel).name.replace(".urdf", ".obj")).symlink_to(mesh_dir / Path(novel).name.replace(".urdf", ".obj"))
+    body = spawn_object(client, ObjectSpec("urdf:" + str(bare), RED, (0.4, 0.0, 0.1), scale=NOVEL_OBJECT_SCALE))
+    assert p.getDynamicsInfo(body, -1, physicsClientId=client)[1] == pytest.approx(LATERAL_FRICTION)
+    for text in ("<robot><link", '<robot><link name="a"><contact><lateral_friction value="grip"/></contact></link></robot>',
+                 '<robot><link name="a"><contact><lateral_friction value="-1"/></contact></link></robot>'):
+        bad = tmp_path / "bad.urdf"
+        bad.write_text(text)
+        urdf_lateral_friction.cache_clear()
+        assert urdf_lateral_friction(str(bad)) is None, text
 
 
 def _write_l_shape(path: Path) -> None:
