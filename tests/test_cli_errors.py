@@ -189,6 +189,10 @@ def test_unknown_argument_without_a_near_flag_gets_no_guess() -> None:
     assert error == "romannet info: error: unrecognized arguments: --zzzzzz"
 
 
+def test_bench_learner_refuses_a_negative_thread_count_in_one_line() -> None:
+    one_line_error(romannet("bench", "learner", "--threads", "-1"), "threads must be >= 0")
+
+
 def test_bench_system_runs_the_parts_asked_for_and_refuses_unknown_ones(monkeypatch) -> None:
     one_line_error(romannet("bench", "system", "--parts", "latency,bogus"), "unknown part(s) bogus",
                    "throughput, latency, recipe, precisions, time")
