@@ -82,7 +82,7 @@ class StepStats:
     td_errors: tuple[float, ...]  # |Q(s_t, a_t) - Y| at the executed pixel (new replay priorities)
     targets: tuple[float, ...]  # Y per item
     item_ids: tuple[int, ...]
-    q_mean: dict[str, float]  # over the Q maps of s_t the step computed in that net (learner.head_crop: the loss regions)
+    q_mean: dict[str, float]  # over the Q maps the step computed in that net (with head_crop: the loss regions)
     q_max: dict[str, float]
     exploration_loss: float  # the paper's L_t: mean over items of Huber(TD error at the executed pixel)
     exploration_rate: float  # after this step's update
