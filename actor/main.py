@@ -102,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
 
     with stop_on_signals(stop, "finishing the current action, then flush and exit"):
-        engine = InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
+        engine = InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model,
+                                 primitives=cfg.task.primitives)
         env = build_env(cfg, robot, getattr(args, "camera", None))
         try:
             with open_session(zenoh_config) as session:

@@ -131,7 +131,8 @@ class ActorLoop:
         self.spool = Spool(self.paths.spool, acfg.spool_max_items, acfg.spool_max_bytes, acfg.spool_fsync)
         self.sender = Sender(self.spool, replay_client, acfg.insert_timeout_s, acfg.resend_backoff_initial_s,
                              acfg.resend_backoff_max_s)
-        self.engine = engine or InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model)
+        self.engine = engine or InferenceEngine(RoManNet(cfg.model, seed=cfg.learner.seed), cfg.model,
+                                                primitives=cfg.task.primitives)
         self.stats = ActorStats(acfg.actor_id, cfg.run_id, explore_rate=cfg.exploration.initial_rate)
         self.failures = FailureMemory.for_task(cfg)  # of the episode under way
         self.clearance = PickClearance.for_config(cfg)

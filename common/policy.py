@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from .action import Action
-from .config import ExplorationConfig, ModelConfig
+from .config import PRIMITIVES, ExplorationConfig, ModelConfig
 from .exploration import select_action
 from .failure_memory import FailureMemory, masked_q
 from .fastnet import FastNet, fused_ops_available
@@ -174,9 +174,15 @@ class InferenceEngine:
     """
 
     def __init__(self, model: RoManNet | None = None, cfg: ModelConfig | None = None, seed: int = 0,
-                 parallel_nets: bool = True):
+                 parallel_nets: bool = True, primitives: Sequence[str] | None = None):
+        """primitives: the nets to build and run (an actor's task's: a clutter actor never runs PlaceNet, and
+        each new version's weights are prepared for the nets it runs only); None: all three."""
         cfg = cfg or (model.cfg if model is not None else ModelConfig())
         self.cfg = cfg
+        self.primitives = tuple(PRIMITIVES if primitives is None else primitives)
+        unknown = sorted(set(self.primitives) - set(PRIMITIVES))
+        if unknown or not self.primitives:
+            raise ValueError(f"primitives {list(self.primitives)} must be some of {list(PRIMITIVES)}")
         self.model = (model if model is not None else RoManNet(cfg, seed=seed)).eval()
         self.precision = resolve_inference_precision(cfg.precision)
         self.fused = fused_ops_available() and (self.precision != "bf16" or bf16_prepack_runs())
@@ -203,8 +209,8 @@ class InferenceEngine:
     def _built(self, model: RoManNet) -> dict[str, FastNet | Int8Net]:
         if self.precision == "int8":
             bits = weight_bits_here()
-            return {name: Int8Net(net, self.fused, bits) for name, net in model.nets.items()}
-        return {name: FastNet(net, self.precision, self.fused) for name, net in model.nets.items()}
+            return {name: Int8Net(model.nets[name], self.fused, bits) for name in self.primitives}
+        return {name: FastNet(model.nets[name], self.precision, self.fused) for name in self.primitives}
 
     def _rebuild(self) -> None:
         self.nets = self._built(self.model)
@@ -253,7 +259,9 @@ class InferenceEngine:
         self._pool = self._preparer = None
 
     def _run(self, name: str, x: Tensor, exact: bool = False) -> Tensor:
-        net = self.nets[name]
+        net = self.nets.get(name)
+        if net is None:
+            raise ValueError(f"this engine runs the nets of {list(self.primitives)}, not {name!r}")
         with torch.inference_mode():  # thread-local: the worker thread needs its own
             return (getattr(net, "exact", net) if exact else net)(x)[0]
 

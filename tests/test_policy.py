@@ -312,3 +312,27 @@ def test_prepared_weights_leave_the_nets_in_use_untouched_until_installed(scenes
         np.testing.assert_array_equal(eng.infer(*scenes[0], ("push", "pick")).q["pick"], before["pick"])
     finally:
         eng.close()
+
+
+def test_an_engine_for_a_tasks_primitives_builds_and_prepares_only_their_nets(model, scenes):
+    # A clutter actor never runs PlaceNet: its engine neither folds nor prepares it, and decides exactly as an
+    # engine with all three nets; asking it for PlaceNet is one clear error.
+    cfg = ModelConfig(q_head_init="default", precision="fp32")
+    full = InferenceEngine(model, cfg, parallel_nets=False)
+    clutter = InferenceEngine(RoManNet(TORCH_INIT, seed=0), cfg, parallel_nets=False, primitives=("push", "pick"))
+    try:
+        assert set(clutter.nets) == {"push", "pick"} and set(full.nets) == {"push", "pick", "place"}
+        for color, depth in scenes[:3]:
+            a = clutter.infer(color, depth, ("push", "pick")).q
+            b = full.infer(color, depth, ("push", "pick")).q
+            for p in a:
+                np.testing.assert_array_equal(a[p], b[p])
+        assert set(clutter.prepare(state_dict_to_tensors(model)).nets) == {"push", "pick"}
+        with pytest.raises(ValueError, match="runs the nets of \\['push', 'pick'\\], not 'place'"):
+            clutter.infer(*scenes[0], ("place",))
+    finally:
+        full.close()
+        clutter.close()
+    for bad in ((), ("grasp",)):
+        with pytest.raises(ValueError, match="must be some of"):
+            InferenceEngine(model, cfg, primitives=bad)
