@@ -201,7 +201,8 @@ def spawn_object(client: int, spec: ObjectSpec) -> int:
     """Create the object in PyBullet client `client`; returns its body id.
 
     Mass from volume (blocks), the file (URDFs) or the bounding box (user meshes); friction from this
-    module's constants, or a URDF's own lateral friction where it declares one. Raises ValueError for an unknown shape, FileNotFoundError for a missing file.
+    module's constants, or a URDF's own lateral friction where it declares one. Raises ValueError for an
+    unknown shape, FileNotFoundError for a missing file.
     """
     if spec.scale <= 0 or not math.isfinite(spec.scale):
         raise ValueError(f"object scale must be a positive number, got {spec.scale}")
