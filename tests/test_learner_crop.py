@@ -134,12 +134,13 @@ def test_head_on_a_region_equals_the_whole_map_over_the_region_minus_the_radius(
     torch.testing.assert_close(rot[:, :, m:-m, :-m], whole_rot[:, :, 10 + m:40 - m, 0:30 - m], atol=1e-6, rtol=0)
 
 
-@pytest.mark.parametrize("learner", [
-    dict(train_crop_px=64),                                                    # windows inside the map
-    dict(train_crop_px=0, rotation_support="kernel", loss_reduction="mean"),   # the whole map, kernel rotation loss
-    dict(train_crop_px=64, augment="rotate", executed_pixel_weight=1.0),       # turned windows
+@pytest.mark.parametrize("learner, model", [
+    (dict(train_crop_px=64), H.SMALL_MODEL),                                                  # windows in the map
+    (dict(train_crop_px=0, rotation_support="kernel", loss_reduction="mean"), H.SMALL_MODEL),  # whole map
+    (dict(train_crop_px=64, augment="rotate", executed_pixel_weight=1.0), H.SMALL_MODEL),     # turned windows
+    (dict(train_crop_px=64), dataclasses.replace(H.SMALL_MODEL, pick_angle_bins=4)),          # a Q per angle
 ])
-def test_head_crop_trains_exactly_as_the_whole_window(learner):
+def test_head_crop_trains_exactly_as_the_whole_window(learner, model):
     # Same nets, same batch (picks and a push, one executed pixel at the map's edge): the step's losses, TD
     # errors and every updated weight agree with the head run on the whole window.
     items = H.batch(4, size=96)
@@ -147,7 +148,7 @@ def test_head_crop_trains_exactly_as_the_whole_window(learner):
     items.append((H.transition(96, seed=8, row=50, col=41, reward=1.0), 0.9, 8))
     runs = []
     for head_crop in (False, True):
-        t = H.trainer(head_crop=head_crop, **learner)
+        t = H.trainer(model=model, head_crop=head_crop, **learner)
         stats = t.train_step(items)
         runs.append((stats, t.model.state_dict()))
     (full, full_w), (crop, crop_w) = runs
@@ -158,6 +159,6 @@ def test_head_crop_trains_exactly_as_the_whole_window(learner):
     moved = 0
     for name, w in full_w.items():
         torch.testing.assert_close(crop_w[name], w, atol=1e-6, rtol=1e-5, msg=name)
-    for name, p in H.trainer(**learner).model.state_dict().items():
+    for name, p in H.trainer(model=model, **learner).model.state_dict().items():
         moved += int(not torch.equal(p, full_w[name]))
     assert moved > 10  # the step did train (so the comparison above compared trained weights)
