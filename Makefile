@@ -27,9 +27,10 @@ install: $(STAMP)
 run: $(STAMP)
 	$(VENV)/bin/romannet up --config configs/experiments/clutter.toml --actors 1 --max-actions 2500 $(ARGS)
 
+# Two workers: most of the suite waits on real processes and sockets, so two share the 2 cores well.
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2 --dist worksteal
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
