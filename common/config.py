@@ -276,6 +276,13 @@ class ExplorationConfig:
     # the oracle grasps a bounding box's middle: a tilted block grasped off its centre of mass turns between
     # the pads and slips out in the lift (most lost clutter picks). Not yet trained with (docs/journal.md).
     pick_centre_across: bool = False
+    # With pick_angle = "narrowest", first among the clear angles along which the closing fingers meet only the
+    # object: the material counted from the pads' lowest contact (3 mm above the fingertips, not 8) fits the
+    # opening and nothing else lies between the open fingers (a finger would push it into the grasp); today's
+    # rule where no angle passes. Why: at test time on models/clutter it raised pick success on 30 novel objects
+    # from 81.3 % to 84.8 % (30 blocks 92.4 % to 92.8 %; docs/journal.md, "What the closing fingers meet").
+    # Not yet trained with.
+    pick_sweep: bool = False
     epsilon_start: float = 0.5  # VPG: eps = max(start * decay^t, min)
     epsilon_decay: float = 0.9998
     epsilon_min: float = 0.1
@@ -296,6 +303,8 @@ class ExplorationConfig:
                 "must be 0..200 px")
         require(self.pick_angle in ("net", "narrowest"), "exploration.pick_angle", self.pick_angle,
                 "must be 'net' or 'narrowest'")
+        require(not self.pick_sweep or self.pick_angle == "narrowest", "exploration.pick_sweep", self.pick_sweep,
+                "needs pick_angle = 'narrowest' (the sweep chooses among the narrowest rule's angles)")
         require(0.0 <= self.epsilon_min <= self.epsilon_start <= 1.0, "exploration.epsilon_start",
                 self.epsilon_start, "must satisfy 0 <= epsilon_min <= epsilon_start <= 1")
         require(0.0 < self.epsilon_decay <= 1.0, "exploration.epsilon_decay", self.epsilon_decay,

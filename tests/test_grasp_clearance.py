@@ -282,6 +282,67 @@ def test_the_across_rule_needs_the_centre_rule_and_is_off_by_default() -> None:
     assert not PickClearance.for_config(off).across
 
 
+def _with_low_neighbour() -> np.ndarray:
+    """A 3 x 5 cm block 4 cm tall in the middle (grasp height 1 cm), and 1.5 cm past its +x face, between the
+    open fingers' 5.5 cm and the face, a low neighbour 2 cm tall: above the fingertips, under the pads' top."""
+    hm = np.zeros((224, 224), np.float32)
+    mid = 224 * RES / 2
+    _box(hm, (mid, mid), (0.015, 0.025), 0.04)
+    _box(hm, (mid + 0.04, mid), (0.01, 0.03), 0.02)
+    return hm
+
+
+def test_the_sweep_rules_out_an_angle_whose_closing_finger_meets_another_object_first() -> None:
+    hm = _with_low_neighbour()
+    row = col = 112
+    clear = clear_picks(hm, RES, RG2, BINS)
+    assert clear[0, row, col] and clear[BINS // 2, row, col]  # the fingers land clear either way
+    along_x, along_y = closing_widths(hm, RES, RG2, row, col, np.array([0.0, math.pi / 2]))
+    assert along_x == pytest.approx(0.03, abs=2 * RES) and along_y == pytest.approx(0.05, abs=2 * RES)
+    swept_x, swept_y = closing_widths(hm, RES, RG2, row, col, np.array([0.0, math.pi / 2]), sweep=True)
+    assert swept_x == math.inf  # the +x finger pushes the neighbour into the block
+    assert swept_y == pytest.approx(0.05, abs=2 * RES)
+    before = PickClearance(RG2, RES, BINS, narrowest=True, centre=True)
+    after = PickClearance(RG2, RES, BINS, narrowest=True, centre=True, sweep=True)
+    assert abs(before.executed(hm, clear, row, col, 0.3)[2]) < math.pi / BINS  # across the 3 cm side, into it
+    _, _, angle = after.executed(hm, clear, row, col, 0.3)
+    assert abs(angle - math.pi / 2) < math.pi / BINS  # across the 5 cm side, clear of the neighbour
+
+
+def test_the_sweep_counts_a_ledge_under_the_pads_top_and_the_middle_stays_the_pads() -> None:
+    hm = np.zeros((224, 224), np.float32)
+    hm[90:135, 105:119] = 0.04  # a block 14 px (2.8 cm) across x, 9 cm along y, 4 cm tall: grasp height 1 cm
+    hm[90:135, 119:132] = 0.015  # a 1.5 cm ledge on its +x side (above the fingertips, under the pads' top)
+    clear = clear_picks(hm, RES, RG2, BINS)
+    assert closing_widths(hm, RES, RG2, 112, 112, np.array([0.0]))[0] == pytest.approx(14 * RES)
+    assert closing_widths(hm, RES, RG2, 112, 112, np.array([0.0]), sweep=True)[0] == pytest.approx(27 * RES)
+    rule = PickClearance(RG2, RES, BINS, narrowest=True, centre=True, sweep=True)
+    assert rule.executed(hm, clear, 112, 116, 0.0) == (112, 112, 0.0)  # the middle of 105..118
+
+
+def test_where_no_angle_passes_the_sweep_the_pose_is_todays() -> None:
+    hm = _with_low_neighbour()
+    mid = 224 * RES / 2
+    for dx, dy in ((-0.04, 0.0), (0.0, 0.045), (0.0, -0.045), (0.03, 0.04), (-0.03, 0.04), (0.03, -0.04),
+                   (-0.03, -0.04)):
+        _box(hm, (mid + dx, mid + dy), (0.008, 0.008), 0.02)  # low neighbours all round
+    clear = clear_picks(hm, RES, RG2, BINS)
+    assert not np.isfinite(closing_widths(hm, RES, RG2, 112, 112, np.arange(BINS) * math.pi / BINS, sweep=True)).any()
+    before = PickClearance(RG2, RES, BINS, narrowest=True, centre=True)
+    after = PickClearance(RG2, RES, BINS, narrowest=True, centre=True, sweep=True)
+    for angle in (0.0, 0.7, 1.6):
+        assert after.executed(hm, clear, 112, 112, angle) == before.executed(hm, clear, 112, 112, angle)
+
+
+def test_the_sweep_rule_follows_the_config_and_is_off_by_default() -> None:
+    assert not PickClearance.for_config(load_config()).sweep
+    rule = PickClearance.for_config(load_config_text(
+        '[exploration]\npick_clearance = true\npick_angle = "narrowest"\npick_sweep = true\n'))
+    assert rule is not None and rule.sweep
+    with pytest.raises(ConfigError, match="pick_sweep.*narrowest"):
+        load_config_text('[exploration]\npick_angle = "net"\npick_sweep = true\n')
+
+
 SMALL_RES = 0.005  # the decisions' small scene: 64 x 64 px, a 5 x 8 cm block 5 cm tall in the middle
 
 
