@@ -187,9 +187,9 @@ def _offsets(mask: np.ndarray, r0: int, c0: int, row: int, col: int) -> np.ndarr
 def _material(depth_hm: np.ndarray, g: GripperFootprint, row: int, col: int, radius_px: int,
               sweep: bool) -> tuple[np.ndarray, np.ndarray] | None:
     """(own, other): (n, 2) float64 (column, row) offsets from (row, col), within radius_px, of the material the
-    fingers close on, connected to the pick's pixel, and of the rest; None where the pick's pixel holds none at
-    the pads' height. Material counts from the pads' top above the grasp height, or with `sweep` from their
-    lowest contact (what the closing fingers meet first)."""
+    finger pads squeeze (over the pick's grasp height, connected to the pick's pixel) and of the rest; None
+    where the pick's pixel holds none at the pads' height. Material counts from the pads' top above the grasp
+    height, or with `sweep` from their lowest contact (what the closing fingers meet first)."""
     h, w = depth_hm.shape
     r0, r1, c0, c1 = max(row - radius_px, 0), min(row + radius_px + 1, h), max(col - radius_px, 0), min(col + radius_px + 1, w)
     grasp = g.grasp_height(depth_hm[row, col])
@@ -199,15 +199,6 @@ def _material(depth_hm: np.ndarray, g: GripperFootprint, row: int, col: int, rad
     _, labels = cv2.connectedComponents(solid.astype(np.uint8), connectivity=4)
     own = labels == labels[row - r0, col - c0]
     return _offsets(own, r0, c0, row, col), _offsets(solid & ~own, r0, c0, row, col)
-
-
-def squeezed_material(depth_hm: np.ndarray, g: GripperFootprint, row: int, col: int,
-                      radius_px: int) -> np.ndarray | None:
-    """(n, 2) float64 (column, row) offsets from (row, col) of the pixels the finger pads would squeeze: the
-    material at the pads' height over the pick's grasp height connected to the pick's pixel, within radius_px;
-    None where the pick's pixel holds none."""
-    found = _material(depth_hm, g, row, col, radius_px, sweep=False)
-    return None if found is None else found[0]
 
 
 def _pad_band(pts: np.ndarray, angle_rad: float, half_width_px: float) -> np.ndarray:
@@ -227,7 +218,7 @@ def _squeezed(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, ro
 def closing_widths(depth_hm: np.ndarray, resolution_m: float, g: GripperFootprint, row: int, col: int,
                    angles_rad: np.ndarray, sweep: bool = False) -> np.ndarray:
     """How far apart the fingers close along each angle on a pick at (row, col): the extent along the closing
-    axis of the squeezed material (squeezed_material) within the pads' width of the closing line (m); inf where
+    axis of the squeezed material (_material) within the pads' width of the closing line (m); inf where
     it reaches an open finger (it does not fit) or the pick's pixel holds none. With `sweep` the material counts
     from the pads' lowest contact, and inf also where other material lies between the open fingers (a finger
     would push it into the grasp): of models/clutter's picks of novel objects, those failed 33 %, the rest 17 %
