@@ -195,11 +195,19 @@ def test_live_serves_each_actors_steps_as_they_are_written(tmp_path: Path, proto
     assert {"/actor-0/step", "/actor-0/transition", "/actor-0/heightmap/depth"} <= {t for t, _, _ in got}
 
 
+def fleet_logs(tmp_path: Path, log_path: Path) -> str:
+    """The launcher's output and the end of the actor's log, for a failure message."""
+    actor_log = tmp_path / "runs" / "fox" / "logs" / "actor-0.log"
+    tail = actor_log.read_text(errors="replace")[-2000:] if actor_log.exists() else "(no actor log)"
+    return f"{log_path.read_text(errors='replace')[-3000:]}\n--- actor-0.log ---\n{tail}"
+
+
 UP_SETS = ["model.channels=4", "model.residual_blocks=1", "model.num_threads=1", "learner.num_threads=1",
            'learner.precision="fp32"', "learner.batch_size=2", "learner.min_replay_size=4",
            "replay.min_size_to_sample=2", "sim.num_objects=3"]
 
 
+@pytest.mark.timeout(300)  # a whole fleet (replay, learner, actor) starting beside another test worker
 def test_up_foxglove_serves_the_actor_live(tmp_path: Path) -> None:
     """`romannet up --foxglove PORT`: while the actor acts, a client offering the current app's protocols
     gets its heightmaps, Q maps, camera, frames and each /step, the bytes the actor records. The run has no
@@ -211,7 +219,8 @@ def test_up_foxglove_serves_the_actor_live(tmp_path: Path) -> None:
         argv += ["--set", s]
     log_path = tmp_path / "up.out"
     with open(log_path, "wb") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "romannet.cli", *argv], stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen([sys.executable, "-m", "romannet.cli", *argv], stdout=out, stderr=subprocess.STDOUT,
+                                env={**os.environ, "OMP_NUM_THREADS": "1"})
         try:
             deadline = time.monotonic() + 60
             while True:
@@ -226,8 +235,11 @@ def test_up_foxglove_serves_the_actor_live(tmp_path: Path) -> None:
                 got: dict[str, list[bytes]] = {}
                 deadline = time.monotonic() + 150
                 while len(got.get("/actor-0/step", [])) < 2:  # two steps after it subscribed
-                    assert time.monotonic() < deadline, f"{sorted(got)}\n{log_path.read_text()[-3000:]}"
-                    msg = ws.recv(timeout=150)
+                    assert time.monotonic() < deadline, f"{sorted(got)}\n{fleet_logs(tmp_path, log_path)}"
+                    try:
+                        msg = ws.recv(timeout=5)
+                    except TimeoutError:  # nothing yet: the deadline above says so with the fleet's logs
+                        continue
                     if isinstance(msg, str) and json.loads(msg).get("op") == "advertise":
                         new = {c["id"]: c for c in json.loads(msg)["channels"]}
                         channels.update(new)
@@ -238,7 +250,7 @@ def test_up_foxglove_serves_the_actor_live(tmp_path: Path) -> None:
         finally:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
-            code = proc.wait(120)
+            code = proc.wait(60)
     out = log_path.read_text()
     assert code == 0, out[-3000:]
     assert "live view of run fox on ws://127.0.0.1" in out and "run fox stopped by signal" in out, out[-3000:]
