@@ -228,7 +228,7 @@ def test_up_foxglove_serves_the_actor_live(tmp_path: Path) -> None:
                     ws = connect(f"ws://127.0.0.1:{port}", subprotocols=CURRENT_APP, open_timeout=10, max_size=None)
                     break
                 except (ConnectionRefusedError, TimeoutError):
-                    assert proc.poll() is None and time.monotonic() < deadline, log_path.read_text()
+                    assert proc.poll() is None and time.monotonic() < deadline, fleet_logs(tmp_path, log_path)
                     time.sleep(0.3)
             with ws:
                 channels: dict[int, dict] = {}
