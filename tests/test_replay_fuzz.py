@@ -101,7 +101,7 @@ def test_queued_bytes_are_bounded_and_an_oversized_insert_is_refused_before_queu
         # One valid insert holds the only worker; two 1 MiB messages queue behind it (2 MiB + its bytes).
         held = session.get(key, payload=wire.encode_transition(fuzz_transition(0)), timeout=30)
         queued = [session.get(key, payload=bytes(MIB), timeout=30) for _ in range(2)]
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 30
         while server.stats()["server"]["queued"]["insert"] < 2 and time.monotonic() < deadline:
             time.sleep(0.02)
         # The third would pass 2.5 MiB queued: refused at once, as is one over max_insert_bytes.
@@ -114,7 +114,7 @@ def test_queued_bytes_are_bounded_and_an_oversized_insert_is_refused_before_queu
         assert next(iter(held)).ok is not None
         for replies in queued:  # taken once the worker was free, then refused as garbage
             assert parse_error(next(iter(replies)).err.payload.to_bytes())[0] == "undecodable"
-        deadline = time.monotonic() + 10  # a worker releases a message's bytes just after its reply
+        deadline = time.monotonic() + 30  # a worker releases a message's bytes just after its reply
         while server.stats()["server"]["queued_bytes"] and time.monotonic() < deadline:
             time.sleep(0.02)
         assert server.stats()["server"]["queued_bytes"] == 0
