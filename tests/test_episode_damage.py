@@ -20,7 +20,7 @@ from mcap.writer import Writer
 from romannet.cli import main
 from romannet.common.episode_file import TRANSITION_TOPIC, EpisodeFileError, NotMcapError, read_episode
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = pytest.mark.timeout(180)  # CLI processes import torch: seconds each on a loaded box
 
 STEPS = 8
 
