@@ -248,7 +248,8 @@ def test_a_hung_client_is_dropped_within_the_lease_and_comes_back(tmp_path: Path
                 hung.proc.send_signal(signal.SIGCONT)
             gone_after_s = events[-1][0] - stopped
             assert events[-1][1] == zenoh.SampleKind.DELETE, events
-            assert 1.0 < gone_after_s < 6.0, gone_after_s  # lease 3 s; keep-alives every 0.75 s
+            # lease 3 s, keep-alives every 0.75 s; under 9 s tells it from Zenoh's default 10 s lease on a loaded box
+            assert 1.0 < gone_after_s < 9.0, gone_after_s
             deadline = time.monotonic() + 15
             while events[-1][1] != zenoh.SampleKind.PUT and time.monotonic() < deadline:
                 time.sleep(0.05)

@@ -183,11 +183,8 @@ def test_sweep_interrupted_resumes_and_is_not_redone(tmp_path: Path) -> None:
 
     # Again: nothing trained or evaluated again; the run's and the evaluations' files are untouched.
     before = {**files_state(out / "runs"), **files_state(out / "eval"), **files_state(out / "logs")}
-    started = time.monotonic()
     proc3 = subprocess.run(sweep_argv(out), capture_output=True, text=True, timeout=120, cwd=REPO)
-    elapsed = time.monotonic() - started
     assert proc3.returncode == 0, proc3.stderr[-4000:]
     assert f"already trained ({MAX_ACTIONS} actions)" in proc3.stderr
     assert {**files_state(out / "runs"), **files_state(out / "eval"), **files_state(out / "logs")} == before
-    assert elapsed < 60, elapsed
     assert json.loads((out / "results.json").read_text()) == results
