@@ -144,7 +144,7 @@ def test_killed_launcher_leaves_no_orphan(tmp_path: Path) -> None:
         assert os.getpgid(child_pid) == child_pid  # its own process group: a terminal's Ctrl-C skips it
         launcher.kill()
         launcher.wait(10)
-        _wait(lambda: not _pid_alive(child_pid), timeout_s=10, what="child exit after the launcher died")
+        _wait(lambda: not _pid_alive(child_pid), timeout_s=30, what="child exit after the launcher died")
     finally:
         if launcher.poll() is None:
             launcher.kill()
