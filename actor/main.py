@@ -21,8 +21,10 @@ import argparse
 import dataclasses
 import logging
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
+from romannet.common.action import Action
 from romannet.common.config import Config, load_config
 from romannet.common.config_actor import ActorConfig
 from romannet.common.configbase import write_toml
@@ -47,7 +49,21 @@ def resolve_actor_config(cfg: Config, args: argparse.Namespace) -> ActorConfig:
     """The [actor] section with the command line's --actor-id / --max-actions / --episodes applied."""
     changes = {name: value for name, value in (("actor_id", args.actor_id), ("max_actions", args.max_actions),
                                                ("episodes", args.episodes)) if value is not None}
-    return dataclasses.replace(cfg.actor, **changes)  # validated again by __post_init__
+    acfg = dataclasses.replace(cfg.actor, **changes)  # validated again by __post_init__
+    if acfg.demo_episodes and getattr(args, "robot", "sim") != "sim":
+        raise ConfigError("actor.demo_episodes", acfg.demo_episodes,
+                          "demonstrations come from the simulator's scripted oracle: 0 on a real robot")
+    return acfg
+
+
+def demonstrator_for(env: Env, acfg: ActorConfig) -> Callable[[], Action] | None:
+    """The scripted oracle acting in the simulated `env` for the first actor.demo_episodes episodes (None when
+    there are none; resolve_actor_config refuses them on a real robot)."""
+    if acfg.demo_episodes == 0:
+        return None
+    from .sim.oracle import oracle_action
+
+    return lambda: oracle_action(env)
 
 
 def build_env(cfg: Config, robot: str = "sim", camera: str | None = None) -> Env:
@@ -106,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
                                  primitives=cfg.task.primitives)
         env = build_env(cfg, robot, getattr(args, "camera", None))
         try:
+            demonstrator = demonstrator_for(env, acfg)
             with open_session(zenoh_config) as session:
                 token = session.liveliness().declare_token(RunKeys(cfg.run_id).actor_alive(acfg.actor_id))
                 try:
@@ -114,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
                     with ZenohWeightsSource(session, cfg.run_id, fetch_timeout_s=acfg.weights_fetch_timeout_s,
                                             validate=lambda t: validate_tensors(engine.model, t)) as source:
                         log.info("actor %s ready (run %s, dir %s)", acfg.actor_id, cfg.run_id, run_dir)
-                        run_actor(cfg, run_dir, env, client, source, stop, actor_cfg=acfg, engine=engine)
+                        run_actor(cfg, run_dir, env, client, source, stop, actor_cfg=acfg, engine=engine,
+                                  demonstrator=demonstrator)
                 finally:
                     token.undeclare()
         finally:

@@ -20,6 +20,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -123,8 +124,11 @@ class ActorLoop:
 
     def __init__(self, cfg: Config, run_dir: str | Path, env: Env, replay_client: ReplayClient,
                  weights_source: WeightsSource, stop_event: threading.Event, acfg: ActorConfig,
-                 engine: InferenceEngine | None = None):
+                 engine: InferenceEngine | None = None, demonstrator: Callable[[], Action] | None = None):
         self.cfg, self.acfg, self.env, self.weights, self.stop = cfg, acfg, env, weights_source, stop_event
+        # The scripted oracle for the first actor.demo_episodes episodes (actor/main.demonstrator_for).
+        self.demonstrator = demonstrator
+        self.demonstrating = False  # the episode under way is a demonstration
         self.run_dir = Path(run_dir)
         self.paths = ActorPaths.of(run_dir, acfg)
         self.paths.root.mkdir(parents=True, exist_ok=True)
@@ -297,6 +301,7 @@ class ActorLoop:
         index = next_episode_index(self.paths.state, self.paths.episodes)
         episode_id = f"ep{index:06d}"
         seed = episode_seed(self.cfg.seed, self.acfg.actor_id, index)
+        self.demonstrating = self.demonstrator is not None and index < self.acfg.demo_episodes
         # Exploration draws: reproducible per (seed, actor, episode), independent of the scene's generator.
         rng = np.random.default_rng([self.cfg.seed, zlib.crc32(self.acfg.actor_id.encode()), index, 1])
         obs = self.env.reset(seed)
@@ -309,6 +314,7 @@ class ActorLoop:
                 {"run_id": self.cfg.run_id, "actor_id": self.acfg.actor_id, "episode_id": episode_id,
                  "task": self.cfg.task.kind, "seed": seed, "weights_version_start": self.stats.weights_version,
                  "initial_weights": self.stats.initial_weights, "explore_rate_start": self.stats.explore_rate,
+                 "demonstration": self.demonstrating,
                  "romannet_version": __version__},
                 self.config_toml, self.acfg.mcap_chunk_bytes, self.acfg.mcap_compression,
                 self.acfg.record_camera, self.acfg.camera_color_format, self.acfg.jpeg_quality,
@@ -346,9 +352,9 @@ class ActorLoop:
             else:
                 self.stats.last_done_reason = done_reason
             self.write_status()
-            log.info("episode %s (seed %d) ended: %s after %d actions; weights v%d, rate %.3f, spool %d",
-                     episode_id, seed, done_reason, ep_actions, self.stats.weights_version,
-                     self.stats.explore_rate, self.spool.items)
+            log.info("%s %s (seed %d) ended: %s after %d actions; weights v%d, rate %.3f, spool %d",
+                     "demonstration" if self.demonstrating else "episode", episode_id, seed, done_reason,
+                     ep_actions, self.stats.weights_version, self.stats.explore_rate, self.spool.items)
 
     def decide(self, obs: Observation, rng: np.random.Generator) -> tuple[Action, PolicyMaps]:
         """RoManNet's decision; weights whose Q maps are not finite are dropped for the last good ones."""
@@ -376,8 +382,11 @@ class ActorLoop:
         return result
 
     def decision(self, obs: Observation, rng: np.random.Generator) -> Decision:
-        """The next action for `obs` with the weights and rate in force now."""
+        """The next action for `obs` with the weights and rate in force now; in a demonstration the oracle's
+        action (the policy's Q maps still give the transition's V(s_{t+1}) for the bootstrap)."""
         action, maps = self.decide(obs, rng)
+        if self.demonstrating:
+            action = dataclasses.replace(self.demonstrator(), explored=True)
         return Decision(action, maps, self.stats.weights_version, self.stats.explore_rate)
 
     def act(self, obs: Observation, decision: Decision, episode_id: str, step: int, rng: np.random.Generator,
@@ -429,12 +438,15 @@ class ActorLoop:
 
 def run_actor(cfg: Config, run_dir: str | Path, env: Env, replay_client: ReplayClient,
               weights_source: WeightsSource, stop_event: threading.Event, actor_cfg: ActorConfig | None = None,
-              engine: InferenceEngine | None = None) -> ActorStats:
+              engine: InferenceEngine | None = None,
+              demonstrator: Callable[[], Action] | None = None) -> ActorStats:
     """Run the actor loop until stop_event is set or actor.max_actions / actor.episodes is reached.
 
     actor_cfg defaults to cfg.actor; engine (for tests) defaults to one built from cfg.model. The caller
     owns env, replay_client and weights_source (and closes them); the spool, sender and engine are closed here.
+    demonstrator: the action for the current state in the first actor.demo_episodes episodes
+    (main.demonstrator_for).
     """
     loop = ActorLoop(cfg, run_dir, env, replay_client, weights_source, stop_event,
-                     actor_cfg or cfg.actor, engine)
+                     actor_cfg or cfg.actor, engine, demonstrator)
     return loop.run()

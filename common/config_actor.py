@@ -30,6 +30,10 @@ class ActorConfig:
     # Limits of one run of the process; 0 = no limit (run until SIGTERM/SIGINT).
     episodes: int = 0
     max_actions: int = 0
+    # The first N episodes of this actor (by episode index, so a resumed run does not repeat them) are acted by
+    # the simulator's scripted oracle instead of the policy: planner demonstrations in replay (SDQfD, BulletArm),
+    # counted in max_actions. Simulation only.
+    demo_episodes: int = 0
     # Spool: every transition is written (fsync'ed) here before it is sent, and removed once acknowledged.
     spool_dir: str = ""  # "" = <run-dir>/actors/<actor_id>/spool
     # The actor pauses (stops acting) while the spool holds this many ... (2: it waits for the replay's paced
@@ -63,6 +67,8 @@ class ActorConfig:
                 "digit (it becomes a Zenoh key chunk and a file name)")
         require(self.episodes >= 0, "actor.episodes", self.episodes, "must be >= 0 (0 = no limit)")
         require(self.max_actions >= 0, "actor.max_actions", self.max_actions, "must be >= 0 (0 = no limit)")
+        require(0 <= self.demo_episodes <= 1_000_000, "actor.demo_episodes", self.demo_episodes,
+                "must be 0..1000000 episodes (0 = none)")
         require(1 <= self.spool_max_items <= 10_000_000, "actor.spool_max_items", self.spool_max_items,
                 "must be 1..10000000 transitions")
         require(_MIB <= self.spool_max_bytes, "actor.spool_max_bytes", self.spool_max_bytes,
