@@ -9,7 +9,6 @@ import threading
 from pathlib import Path
 
 import pytest
-from mcap.reader import make_reader
 from test_actor_service import OVERRIDES, NoWeights, RecordingClient
 
 from romannet.actor.main import demonstrator_for, resolve_actor_config
@@ -19,6 +18,7 @@ from romannet.common.config import Config, load_config
 from romannet.common.config_actor import ActorConfig
 from romannet.common.config_replay import ReplayConfig
 from romannet.common.errors import ConfigError
+from romannet.mcaptools.summary import format_episode, format_totals, summarize, totals
 from romannet.replay.store import ReplayStore
 
 pytestmark = pytest.mark.timeout(180)
@@ -53,13 +53,8 @@ def _run(cfg: Config, run_dir: Path, store_dir: Path, acfg: ActorConfig) -> list
     return client.accepted
 
 
-def _demonstration_flags(run_dir: Path) -> dict[str, bool]:
-    flags = {}
-    for f in sorted(ActorPaths.of(run_dir, _acfg()).episodes.glob("*.mcap")):
-        with open(f, "rb") as fh:
-            meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}
-        flags[f.stem] = meta["romannet"]["demonstration"] == "True"
-    return flags
+def _summaries(run_dir: Path) -> list[dict]:
+    return [summarize(f) for f in sorted(ActorPaths.of(run_dir, _acfg()).episodes.glob("*.mcap"))]
 
 
 def test_the_first_episodes_are_the_oracles_and_a_restart_does_not_repeat_them(tmp_path: Path,
@@ -77,7 +72,11 @@ def test_the_first_episodes_are_the_oracles_and_a_restart_does_not_repeat_them(t
     second = _run(cfg, tmp_path, tmp_path / "replay2", acfg)
     assert second and {t.episode_id for t in second} == {"ep000001"}
     assert not any(t.action.explored for t in second)
-    assert _demonstration_flags(tmp_path) == {"ep000000": True, "ep000001": False}
+    # `romannet mcap summary` tells the recorded demonstration from the policy's episode.
+    episodes = _summaries(tmp_path)
+    assert [(e["episode_id"], e["demonstration"]) for e in episodes] == [("ep000000", True), ("ep000001", False)]
+    assert "demonstration" in format_episode(episodes[0]) and "demonstration" not in format_episode(episodes[1])
+    assert totals(episodes)["demonstrations"] == 1 and "1 demonstration(s)" in format_totals(totals(episodes))
 
 
 def test_no_demonstrator_without_demo_episodes(cfg: Config) -> None:

@@ -104,6 +104,7 @@ def summarize(path: str | Path, verify: bool = False) -> dict[str, Any]:
         "skipped_bytes": health.skipped_bytes, "steps_recorded": health.expected.get(TRANSITION_TOPIC),
         "run_id": meta.get("run_id"), "actor_id": meta.get("actor_id"), "episode_id": meta.get("episode_id"),
         "task": meta.get("task"), "seed": _number(meta.get("seed")),
+        "demonstration": meta.get("demonstration") == "True",  # the scripted oracle acted it (actor.demo_episodes)
         "steps": steps, "step_records": topics[STEP_TOPIC], "invalid_transitions": tally.invalid,
         "first_invalid": tally.first_error or None,
         "actions": {p: tally.actions[p] for p in PRIMITIVES if tally.actions[p]},
@@ -139,6 +140,7 @@ def totals(episodes: list[dict[str, Any]]) -> dict[str, Any]:
     return {"episodes": len(episodes), "steps": steps, "truncated": sum(e["health"] == "truncated" for e in episodes),
             "damaged": sum(e["health"] == "damaged" for e in episodes),
             "completed": sum(e["end_reason"] == "done" for e in episodes),
+            "demonstrations": sum(e["demonstration"] for e in episodes),
             "actions": dict(actions), "successes": dict(successes),
             "pick_success": successes["pick"] / actions["pick"] if actions["pick"] else None,
             "reward_sum": round(sum(e["reward_sum"] for e in episodes), 6)}
@@ -158,7 +160,8 @@ def format_episode(e: dict[str, Any]) -> str:
         health += f"; {e['steps']} of {e['steps_recorded']} steps read"
     lines = [f"{e['path']}  [{health}, {_kb(e['file_bytes'])}]",
              f"  run {e['run_id']} | actor {e['actor_id']} | episode {e['episode_id']} | task {e['task']} | "
-             f"seed {e['seed']}" + (" | rescored" if e["rescored"] else ""),
+             f"seed {e['seed']}" + (" | rescored" if e["rescored"] else "")
+             + (" | demonstration (the oracle's actions)" if e["demonstration"] else ""),
              f"  {e['steps']} steps, successes {acts}; explored {e['explored']}; reward sum {e['reward_sum']:.3f}"
              + (f", mean {e['reward_mean']:.3f}" if e["reward_mean"] is not None else ""),
              f"  end: {e['end_reason']}" + (f" (efficiency {e['efficiency']:.2f})" if e["efficiency"] is not None else "")
@@ -173,7 +176,9 @@ def format_episode(e: dict[str, Any]) -> str:
 def format_totals(t: dict[str, Any]) -> str:
     pick = "-" if t["pick_success"] is None else f"{100 * t['pick_success']:.1f} %"
     return (f"{t['episodes']} episode(s), {t['steps']} steps, {t['completed']} completed, {t['truncated']} "
-            f"truncated, {t['damaged']} damaged; pick success {pick}; reward sum {t['reward_sum']:.3f}")
+            f"truncated, {t['damaged']} damaged"
+            + (f", {t['demonstrations']} demonstration(s)" if t["demonstrations"] else "")
+            + f"; pick success {pick}; reward sum {t['reward_sum']:.3f}")
 
 
 def to_json(episodes: list[dict[str, Any]], errors: list[str]) -> str:
