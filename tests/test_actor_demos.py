@@ -9,7 +9,7 @@ import threading
 from pathlib import Path
 
 import pytest
-from test_actor_service import OVERRIDES, NoWeights, RecordingClient
+from test_actor_service import OVERRIDES, NoWeights, RecordingClient, _acfg
 
 from romannet.actor.main import demonstrator_for, resolve_actor_config
 from romannet.actor.service import ActorPaths, run_actor
@@ -32,11 +32,6 @@ STACKING = OVERRIDES + ['task.kind="stacking"', "task.goal_stack_height=2", "tas
 @pytest.fixture(scope="module")
 def cfg() -> Config:
     return load_config(None, STACKING)
-
-
-def _acfg(**kw) -> ActorConfig:
-    return ActorConfig(**{"actor_id": "a0", "spool_fsync": False, "insert_timeout_s": 1.0,
-                          "resend_backoff_initial_s": 0.05, "resend_backoff_max_s": 0.2, **kw})
 
 
 def _run(cfg: Config, run_dir: Path, store_dir: Path, acfg: ActorConfig) -> list:
