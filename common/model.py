@@ -34,6 +34,7 @@ from torch import Tensor, nn
 
 from .config import PRIMITIVES, ModelConfig
 from .errors import DecodeError
+from .tensor_checks import all_finite
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -294,7 +295,7 @@ def validate_tensors(model: nn.Module, tensors: Mapping[str, Tensor]) -> None:
             raise DecodeError(f"weights[{key!r}] has shape {tuple(t.shape)}, expected {tuple(ref.shape)}")
         if t.dtype != ref.dtype:
             raise DecodeError(f"weights[{key!r}] has dtype {t.dtype}, expected {ref.dtype}")
-        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+        if not all_finite(t):
             raise DecodeError(f"weights[{key!r}] contains NaN or infinite values")
         if key.endswith("running_var") and bool((t < 0).any()):
             raise DecodeError(f"weights[{key!r}] has negative variances")

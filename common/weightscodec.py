@@ -13,13 +13,13 @@ import safetensors.torch
 import torch
 
 from .errors import DecodeError
+from .tensor_checks import all_finite
 from .wire_messages import MAX_WEIGHTS_BYTES, WeightsAnnouncementMsg, WeightsMsg, sha256_hex
 from .wire_validate import show
 
 
 def _non_finite(tensors: Mapping[str, torch.Tensor]) -> list[str]:
-    return [name for name, t in tensors.items()
-            if (t.is_floating_point() or t.is_complex()) and not bool(torch.isfinite(t).all())]
+    return [name for name, t in tensors.items() if not all_finite(t)]
 
 
 def encode_state_dict(tensors: Mapping[str, torch.Tensor]) -> bytes:

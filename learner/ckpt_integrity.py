@@ -38,6 +38,7 @@ from romannet.common.configbase import from_dict
 from romannet.common.errors import RomannetError
 from romannet.common.fsutil import fsync_directory
 from romannet.common.model import RoManNet, validate_tensors
+from romannet.common.tensor_checks import all_finite
 
 logger = logging.getLogger(__name__)
 
@@ -189,7 +190,7 @@ def _check_tensors(ckpt: Path, tensors: Mapping[str, torch.Tensor], model_cfg: M
         if shapes.get(name) != tuple(buf.shape):
             raise CheckpointDamaged(ckpt, f"momentum/{name} has shape {tuple(buf.shape)}, the model "
                                     f"{'has no such parameter' if name not in shapes else shapes[name]}")
-        if not bool(torch.isfinite(buf).all()):
+        if not all_finite(buf):
             raise CheckpointDamaged(ckpt, f"momentum/{name} contains NaN or infinite values")
     missing = [k for k in TRAINING_TENSORS if training_state and k not in tensors]
     if missing:

@@ -210,8 +210,9 @@ def _loop(trainer: Trainer, client: ReplayClient, publisher: WeightsPublisher, c
             counters.checkpointed_at = stats.updates
             metrics.flush()
         next_log_s = _maybe_log(next_log_s, opts, "update %d: loss %.4g, explore %.3f, replay %d, V(s') from "
-                                "the actors %d, computed %d", stats.updates, stats.loss, stats.exploration_rate,
-                                batch.buffer_size, trainer.actor_values_used, trainer.values_computed)
+                                "the actors %d, computed %d, reused %d", stats.updates, stats.loss, stats.exploration_rate,
+                                batch.buffer_size, trainer.actor_values_used, trainer.values_computed,
+                                trainer.values_reused)
 
 
 def _sample(client: ReplayClient, batch_size: int, opts: ServiceOptions,

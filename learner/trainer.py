@@ -152,15 +152,26 @@ def _head_crop(g: _GroupInputs, features: Tensor, margin: int) -> tuple[_GroupIn
         cut(features)
 
 
+def value_fresh(value_version: int | None, version: int, max_age: int) -> bool:
+    """Whether a V(s_{t+1}) computed with weights `value_version` still stands in for a forward pass at the
+    learner's weights `version` (update count + version offset): at most max_age versions older (0: never).
+    A bootstrap from weights a little behind the online net is what a target network does; an older one is
+    recomputed, so replayed items do not keep the stale targets they were inserted with."""
+    return max_age > 0 and value_version is not None and 0 <= version - value_version <= max_age
+
+
 def actor_value_usable(t: TransitionMsg, version: int, max_age: int) -> bool:
-    """Whether the actor's V(s_{t+1}) stands in for a forward pass: it was sent, and its weights are at most
-    max_age versions older than the learner's weights `version` (update count + version offset; 0: never).
-    A bootstrap from weights a little behind the online net is what a target network does (and the actor
-    acts on exactly that function); an older one is recomputed, so replayed items do not keep the stale
-    targets they were inserted with."""
-    if max_age <= 0 or t.next_value is None or t.next_value_version is None:
-        return False
-    return 0 <= version - t.next_value_version <= max_age
+    """Whether the actor's V(s_{t+1}) (its next decision's, on exactly the function it acts on) was sent and
+    is fresh (`value_fresh`)."""
+    return t.next_value is not None and value_fresh(t.next_value_version, version, max_age)
+
+
+ValueKey = tuple[str, str, int]
+
+
+def value_key(t: TransitionMsg) -> ValueKey:
+    """A transition's identity, as the replay server deduplicates it."""
+    return t.actor_id, t.episode_id, t.step
 
 
 def batch_items(batch: SampleBatchMsg) -> list[BatchItem]:
@@ -205,6 +216,12 @@ class Trainer:
         self.primitives = task_cfg.primitives
         self.actor_values_used = 0  # V(s_{t+1}) taken from the actor's next decision
         self.values_computed = 0  # V(s_{t+1}) computed here by a forward pass
+        self.values_reused = 0  # V(s_{t+1}) computed here earlier and still fresh (`value_fresh`)
+        # What this learner computed, by transition: (weights version, V before clipping). The rule that lets
+        # an actor's value stand in for a forward pass lets an earlier pass's stand in too (a prioritised
+        # item comes back within a few updates); entries older than the rule allows are dropped.
+        self._values: dict[ValueKey, tuple[int, float]] = {}
+        self._values_pruned_at = 0
 
     # ------------------------------------------------------------------------------------------ helpers
     def _autocast(self):
@@ -239,6 +256,18 @@ class Trainer:
         self.actor_values_used += len(from_actor)
         taken = set(from_actor)
         need = [i for i in need if i not in taken]
+        max_age = self.cfg.actor_value_max_age
+        if version - self._values_pruned_at > max_age:
+            self._values = {k: e for k, e in self._values.items() if value_fresh(e[0], version, max_age)}
+            self._values_pruned_at = version
+        reused = [i for i in need if value_fresh(self._values.get(value_key(transitions[i]), (None,))[0],
+                                                 version, max_age)]
+        for i in reused:
+            v = self._values[value_key(transitions[i])][1]
+            values[i] = clip_value(v, bounds) if bounds is not None else v
+        self.values_reused += len(reused)
+        taken = set(reused)
+        need = [i for i in need if i not in taken]
         self.values_computed += len(need)
         if not need:
             return values
@@ -261,6 +290,8 @@ class Trainer:
             for i in need:
                 t = transitions[i]
                 values[i] = bootstrap_value(maxima[i], t.holding_after, self.primitives, t.done)
+                if max_age > 0:
+                    self._values[value_key(t)] = (version, values[i])
                 if bounds is not None:
                     values[i] = clip_value(values[i], bounds)
         finally:

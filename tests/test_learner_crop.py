@@ -84,6 +84,29 @@ def test_actor_value_is_used_when_fresh_and_recomputed_when_stale():
     assert (t.actor_values_used, t.values_computed) == (2, 2)
 
 
+def test_a_computed_value_is_reused_while_fresh_then_recomputed():
+    """The learner's own V(s_t+1) stands in for a forward pass under the actors' rule (at most
+    actor_value_max_age versions old), per transition; past that it is computed again with today's net."""
+    t = H.trainer(actor_value_max_age=5, bootstrap_clip=False)
+    t.updates = 20
+    item = H.transition(32, seed=2, reward=1.0)
+    other = dataclasses.replace(item, step=item.step + 1)  # the same s_t+1, another transition
+    first = t.next_state_values([item])[0]
+    with torch.no_grad():
+        for net in t.model.nets.values():
+            net.q_head.bias.add_(0.25)  # the net moves on: every Q, so V, by 0.25
+    t.updates = 25
+    assert t.next_state_values([item, other]) == [pytest.approx(first), pytest.approx(first + 0.25)]
+    assert (t.values_computed, t.values_reused) == (2, 1)
+    t.updates = 26  # six versions after the first pass: too old
+    assert t.next_state_values([item])[0] == pytest.approx(first + 0.25)
+    assert (t.values_computed, t.values_reused) == (3, 1)
+    off = H.trainer(actor_value_max_age=0)
+    off.next_state_values([item])
+    off.next_state_values([item])
+    assert (off.values_computed, off.values_reused) == (2, 0)
+
+
 def test_actor_value_usable_rules():
     base = H.transition(32, seed=3)
     with_value = dataclasses.replace(base, next_value=0.1, next_value_version=8)
