@@ -15,13 +15,17 @@ Five measurements, one JSON object:
   after the first 60 actions, and their ratio.
 - recipe precisions (from a source checkout): the same recipe with the actor's decisions in the precision
   "auto" picks here (bf16 or int8) against fp32.
-`parts` picks some of them (SYSTEM_PARTS), e.g. ("precisions",).
+- late pace (only when named, with late_from): a finished run resumed for 250 more actions, the learner's
+  defaults against V(s_t+1) recomputed past 100 versions and weights published after every update.
+`parts` picks some of them (SYSTEM_PARTS, OPTIONAL_PARTS), e.g. ("precisions",).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -140,17 +144,66 @@ def measure_recipe_precisions(recipe: Path, actions: int = 200, pairs: int = 1, 
             "actions_per_s": med, f"{auto}_vs_fp32": _ratio(med[auto], med["fp32"])}
 
 
+# The learner before it reused V(s_t+1) for longer and published every other update: every replayed item's
+# V recomputed once its value is 100 versions old, weights swapped after every update.
+FRESH_VALUES_PATH = ("learner.actor_value_max_age=100", "learner.publish_every_updates=1")
+
+
+def measure_late_pace(run_dir: Path, actions: int = 250, pairs: int = 1, skip: int = 60,
+                      timeout_s: float = 1800.0) -> dict[str, Any]:
+    """A finished run's pace late in training, where a full replay makes the learner's V(s_t+1) passes the
+    cost: copies of `run_dir` resumed (`romannet up --resume`) for `actions` more actions, the learner's
+    defaults against FRESH_VALUES_PATH, alternating; median actions/s after the first `skip` new actions."""
+    from romannet.common.config_learner import LearnerConfig
+
+    done = int(json.loads((run_dir / "summary.json").read_text())["actions"])
+    d = LearnerConfig()
+    current = [f"learner.actor_value_max_age={d.actor_value_max_age}",
+               f"learner.publish_every_updates={d.publish_every_updates}"]
+    variants = {"current": current, "fresh_values": list(FRESH_VALUES_PATH)}
+    rates: dict[str, list[float]] = {name: [] for name in variants}
+    for _ in range(pairs):
+        for name, sets in variants.items():
+            with tempfile.TemporaryDirectory(prefix="romannet-bench-late-") as tmp:
+                copy = Path(tmp) / run_dir.name
+                shutil.copytree(run_dir, copy, symlinks=True)
+                before = max((t for ts in _transition_times(copy).values() for t in ts), default=0)
+                cmd = [sys.executable, "-m", "romannet.cli", "--log-level", "WARNING", "up", "--resume",
+                       "--runs-dir", tmp, "--name", run_dir.name, "--max-actions", str(done + actions)]
+                for kv in sets:
+                    cmd += ["--set", kv]
+                proc = subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.PIPE, timeout=timeout_s)
+                if proc.returncode != 0:
+                    raise RuntimeError(f"romannet up --resume exited {proc.returncode}: "
+                                       f"{proc.stderr.decode()[-2000:]}")
+                times = sorted(t for ts in _transition_times(copy).values() for t in ts if t > before)
+            rate = _rate_after(times, skip)
+            if rate is not None:
+                rates[name].append(rate)
+    med = {k: round(statistics.median(v), 3) if v else None for k, v in rates.items()}
+    return {"run": str(run_dir), "resumed_at_action": done, "actions": actions, "after_action": skip,
+            "pairs": pairs, "actions_per_s": med, "current_vs_fresh_values": _ratio(med["current"],
+                                                                                 med["fresh_values"]),
+            "current_sets": current, "fresh_values_sets": list(FRESH_VALUES_PATH)}
+
+
 SYSTEM_PARTS = ("throughput", "latency", "recipe", "precisions", "time")
+OPTIONAL_PARTS = ("late",)  # needs a finished run to resume: run only when named
 
 
 def run_system_benchmark(actions_per_actor: int = 30, actor_counts: tuple[int, ...] = (1, 2),
                          latency_actors: tuple[int, ...] = (1, 8), repeats: int = 5, robot: str = "gripper",
                          resolution_m: float = 0.002, seed: int = 0,
-                         parts: tuple[str, ...] = SYSTEM_PARTS) -> dict[str, Any]:
-    """The measurements named in parts (SYSTEM_PARTS; see the module docstring)."""
-    unknown = sorted(set(parts) - set(SYSTEM_PARTS))
+                         parts: tuple[str, ...] = SYSTEM_PARTS, late_from: Path | None = None) -> dict[str, Any]:
+    """The measurements named in parts (SYSTEM_PARTS, OPTIONAL_PARTS; see the module docstring)."""
+    unknown = sorted(set(parts) - set(SYSTEM_PARTS) - set(OPTIONAL_PARTS))
     if unknown:
-        raise ValueError(f"unknown part(s) {', '.join(unknown)}: choose from {', '.join(SYSTEM_PARTS)}")
+        raise ValueError(f"unknown part(s) {', '.join(unknown)}: choose from "
+                         f"{', '.join(SYSTEM_PARTS + OPTIONAL_PARTS)}")
+    if "late" in parts and (late_from is None or not (late_from / "summary.json").is_file()):
+        raise ValueError("part 'late' resumes a finished `romannet up` run: name one (a directory with a "
+                         f"summary.json) with --late-from RUN_DIR{f'; {late_from} is not one' if late_from else ''}")
     result: dict[str, Any] = {
         "benchmark": "system", "cpu_count": os.cpu_count(), "load_average_at_start": os.getloadavg(),
         "robot": robot, "resolution_m": resolution_m, "parts": list(parts),
@@ -171,6 +224,10 @@ def run_system_benchmark(actions_per_actor: int = 30, actor_counts: tuple[int, .
     if recipe.is_file() and "precisions" in parts:
         log.info("recipe pace: %s, the actor's precision \"auto\" vs fp32", recipe.name)
         result["recipe_precisions"] = measure_recipe_precisions(recipe)
+    if "late" in parts and late_from is not None:
+        log.info("late pace: %s resumed, the learner's defaults vs fresh V(s_t+1) and weights every update",
+                 late_from)
+        result["late_pace"] = measure_late_pace(late_from)
     if "time" in parts:
         log.info("actor time shares")
         result["actor_time"] = measure_actor_time_shares(actions_per_actor, robot, resolution_m, seed)

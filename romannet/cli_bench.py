@@ -8,8 +8,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
-from romannet.bench.system import SYSTEM_PARTS
+from romannet.bench.system import OPTIONAL_PARTS, SYSTEM_PARTS
 
 
 def _repeats(args: argparse.Namespace) -> dict:
@@ -60,7 +61,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from romannet.bench.system import run_system_benchmark
 
         parts = tuple(x.strip() for x in args.parts.split(",") if x.strip())
-        result = run_system_benchmark(actions_per_actor=args.actions, seed=args.seed, parts=parts, **_repeats(args))
+        result = run_system_benchmark(actions_per_actor=args.actions, seed=args.seed, parts=parts,
+                                      late_from=args.late_from, **_repeats(args))
     elif args.what == "pick-geometry":
         from romannet.bench.pick_geometry import markdown, run_pick_geometry_benchmark
 
@@ -203,7 +205,7 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                        cube_sizes="0.05,0.04", batch_sizes="1,4,8", device="cpu", messages=2000,
                        big_mb="100,250,500,1000", duration=600.0, kill_every="30,90", flips=8,
                        sizes="8,32,64", period="1,2", topology="auto", set=[], parts=",".join(SYSTEM_PARTS),
-                       threads=0)
+                       threads=0, late_from=None)
         if "seed" in options:
             q.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
         if "repeats" in options:
@@ -236,7 +238,12 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
             q.add_argument("--duration", type=float, default=600.0, help="seconds of chaos once the fleet is up")
         if "parts" in options:
             q.add_argument("--parts", default=",".join(SYSTEM_PARTS), metavar="PART,...",
-                           help=f"comma-separated measurements, of {', '.join(SYSTEM_PARTS)} (default: all)")
+                           help=f"comma-separated measurements, of {', '.join(SYSTEM_PARTS)} (default: all) "
+                           f"and {', '.join(OPTIONAL_PARTS)} (a finished run resumed for 250 actions, the "
+                           "learner's defaults against fresh V(s') and weights every update; needs --late-from)")
+            q.add_argument("--late-from", type=Path, default=None, metavar="RUN_DIR",
+                           help="a finished `romannet up` run of the clutter recipe for part 'late' (copied; "
+                           "the run itself is not touched)")
         if "sizes" in options:
             q.add_argument("--sizes", default="8,32,64", help="comma-separated numbers of light actors "
                            "(default 8,32,64; a 1-actor run comes first)")

@@ -205,6 +205,13 @@ def test_bench_system_runs_the_parts_asked_for_and_refuses_unknown_ones(monkeypa
     assert result["throughput"] == [] and result["weights_latency"] == [] and "actor_time" not in result
 
 
+def test_bench_system_late_part_needs_a_finished_run(tmp_path) -> None:
+    one_line_error(romannet("bench", "system", "--parts", "late"), "part 'late' resumes a finished",
+                   "--late-from RUN_DIR")
+    one_line_error(romannet("bench", "system", "--parts", "time,late", "--late-from", str(tmp_path)),
+                   f"{tmp_path} is not one")
+
+
 def test_bench_faults_help_describes_the_faults_benchmark() -> None:
     out = romannet("bench", "faults", "--help")
     assert out.returncode == 0, out.stderr
