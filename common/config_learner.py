@@ -53,9 +53,10 @@ class LearnerConfig:
     # target R + gamma V moves with it, from ~4 to below a failed pick's 0 (docs/journal.md).
     bootstrap_clip: bool = True
     target_sync_every_updates: int = 100  # copy online -> target every this many updates
-    # Take V(s_{t+1}) from the actor's next decision (it runs the same nets on s_{t+1} to act) when its weights
-    # are at most this many updates behind the learner's, instead of a forward pass here; older values are
-    # recomputed (learner.trainer.actor_value_usable). 0 = always compute here.
+    # Take V(s_{t+1}) from the actor's next decision (it runs the same nets on s_{t+1} to act), or from this
+    # learner's own earlier pass on the same transition, when its weights are at most this many updates behind
+    # the learner's, instead of a forward pass here; older values are recomputed (learner.trainer.value_fresh).
+    # 0 = always compute here.
     actor_value_max_age: int = 100
     # Clip the gradient's global L2 norm to this before each step; 0 = off (the paper's and VPG's setting). A
     # summed loss over a Gaussian label's support makes early gradients large: clipping lets a higher lr train

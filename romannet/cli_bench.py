@@ -240,7 +240,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
             q.add_argument("--parts", default=",".join(SYSTEM_PARTS), metavar="PART,...",
                            help=f"comma-separated measurements, of {', '.join(SYSTEM_PARTS)} (default: all) "
                            f"and {', '.join(OPTIONAL_PARTS)} (a finished run resumed for 250 actions, the "
-                           "learner's defaults against fresh V(s') and weights every update; needs --late-from)")
+                           "learner's defaults against staler V(s') and weights every other update; needs "
+                           "--late-from)")
             q.add_argument("--late-from", type=Path, default=None, metavar="RUN_DIR",
                            help="a finished `romannet up` run of the clutter recipe for part 'late' (copied; "
                            "the run itself is not touched)")
