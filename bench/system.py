@@ -2,7 +2,7 @@
 
     run_system_benchmark(actions_per_actor=30, actor_counts=(1, 2), latency_actors=(1, 8))
 
-Five measurements, one JSON object:
+Five measurements, and a sixth when named, one JSON object:
 - throughput: `romannet up` (replay server, learner, N simulated actors as separate processes, everything
   over loopback Zenoh, the learner training alongside) runs N * actions_per_actor actions; per-actor
   actions/s come from the actor's MCAP episodes (first to last transition's log time, so start-up is not
@@ -144,8 +144,9 @@ def measure_recipe_precisions(recipe: Path, actions: int = 200, pairs: int = 1, 
             "actions_per_s": med, f"{auto}_vs_fp32": _ratio(med[auto], med["fp32"])}
 
 
-# Staler bootstrap values and fewer weight swaps: 1.6x shorter clutter runs on AMD-bf16, 2-5 points less pick
-# success (docs/journal.md, "Staler V(s') and weights every other update"); what this part prices.
+# Staler bootstrap values and fewer weight swaps: clutter runs of 11.5-12 minutes on AMD-bf16 against the
+# defaults' 14.6-14.9, and about 3 points less pick success (docs/journal.md, "Staler V(s') and weights every
+# other update"); what this part prices.
 STALE_VALUES_PATH = ("learner.actor_value_max_age=400", "learner.publish_every_updates=2")
 
 
