@@ -162,13 +162,13 @@ def measure_late_pace(run_dir: Path, actions: int = 250, pairs: int = 1, skip: i
     current = [f"learner.actor_value_max_age={d.actor_value_max_age}",
                f"learner.publish_every_updates={d.publish_every_updates}"]
     variants = {"current": current, "stale_values": list(STALE_VALUES_PATH)}
+    before = max((t for ts in _transition_times(run_dir).values() for t in ts), default=0)  # the run's last one
     rates: dict[str, list[float]] = {name: [] for name in variants}
     for _ in range(pairs):
         for name, sets in variants.items():
             with tempfile.TemporaryDirectory(prefix="romannet-bench-late-") as tmp:
                 copy = Path(tmp) / run_dir.name
                 shutil.copytree(run_dir, copy, symlinks=True)
-                before = max((t for ts in _transition_times(copy).values() for t in ts), default=0)
                 cmd = [sys.executable, "-m", "romannet.cli", "--log-level", "WARNING", "up", "--resume",
                        "--runs-dir", tmp, "--name", run_dir.name, "--max-actions", str(done + actions)]
                 for kv in sets:

@@ -260,14 +260,12 @@ class Trainer:
         if version - self._values_pruned_at > max_age:
             self._values = {k: e for k, e in self._values.items() if value_fresh(e[0], version, max_age)}
             self._values_pruned_at = version
-        reused = [i for i in need if value_fresh(self._values.get(value_key(transitions[i]), (None,))[0],
-                                                 version, max_age)]
-        for i in reused:
-            v = self._values[value_key(transitions[i])][1]
+        own = {i: self._values.get(value_key(transitions[i])) for i in need}
+        reused = {i: e[1] for i, e in own.items() if e is not None and value_fresh(e[0], version, max_age)}
+        for i, v in reused.items():
             values[i] = clip_value(v, bounds) if bounds is not None else v
         self.values_reused += len(reused)
-        taken = set(reused)
-        need = [i for i in need if i not in taken]
+        need = [i for i in need if i not in reused]
         self.values_computed += len(need)
         if not need:
             return values
